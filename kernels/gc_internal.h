@@ -1,0 +1,121 @@
+/* gc_internal.h - data layout shared by the kernels' translation units.
+ *
+ * Not part of the public interface.  A grid is four flat arrays:
+ *   tris  : the mesh's triangles, vertex positions copied per triangle (72 bytes each);
+ *   nodes : one per (sub)grid, node 0 is the top level;
+ *   cells : every node's cells, node k owning [first_cell, first_cell + nx*ny*nz);
+ *   refs  : triangle indices; a leaf cell owns refs[begin, begin + count).
+ * A cell whose count is GC_CELL_SUBGRID holds a subgrid: its begin is a node index.
+ */
+#ifndef GC_INTERNAL_H
+#define GC_INTERNAL_H
+
+#include "gridcal.h"
+
+#include <math.h>
+#include <stdint.h>
+
+#if defined(__GNUC__)
+#define GC_INLINE static inline __attribute__((always_inline))
+#else
+#define GC_INLINE static inline
+#endif
+
+typedef struct {
+    double v0[3], v1[3], v2[3];
+} gc_tri; /* 72 bytes */
+
+typedef struct {
+    uint32_t begin; /* first reference, or the subgrid's node index */
+    uint32_t count; /* number of references, or GC_CELL_SUBGRID */
+} gc_cell;          /* 8 bytes */
+
+#define GC_CELL_SUBGRID UINT32_MAX
+
+typedef struct {
+    double lo[3], hi[3];
+    double cell[3];     /* cell size along each axis */
+    double inv_cell[3]; /* 1 / cell */
+    int32_t n[3];
+    uint32_t first_cell;
+    uint32_t depth;     /* 0 for the top level */
+    uint32_t pad;
+} gc_node;              /* 120 bytes */
+
+_Static_assert(sizeof(gc_tri) == 72, "gc_tri is three packed vertices");
+_Static_assert(sizeof(gc_cell) == 8, "gc_cell is two 32-bit fields");
+_Static_assert(sizeof(gc_node) == 120, "gc_node layout");
+
+struct gc_grid {
+    gc_tri *tris;
+    int64_t n_tris;
+    gc_node *nodes;
+    int64_t n_nodes;
+    gc_cell *cells;
+    int64_t n_cells;
+    uint32_t *refs;
+    int64_t n_refs;
+    gc_intersector intersector;
+    int mailbox;
+    int levels;
+};
+
+/* The one place a cell's index is computed. */
+GC_INLINE uint64_t gc_cell_index(const gc_node *g, int32_t x, int32_t y, int32_t z)
+{
+    return (uint64_t)g->first_cell +
+           (uint64_t)x + (uint64_t)g->n[0] * ((uint64_t)y + (uint64_t)g->n[1] * (uint64_t)z);
+}
+
+/* Direction components below this are flushed to +0: their reciprocal would
+ * overflow, and over any representable t they move the ray by nothing. */
+#define GC_DIRECTION_FLUSH 2.2250738585072014e-308 /* DBL_MIN */
+
+/* A ray prepared once for every test it takes part in. */
+typedef struct {
+    double o[3], d[3];
+    double inv_d[3];   /* 1/d, +-inf where d is +-0 */
+    /* watertight test (Woop et al. 2013): axes and shear */
+    int kx, ky, kz;
+    double sx, sy, sz;
+} gc_ray;
+
+GC_INLINE void gc_ray_prepare(gc_ray *r, const double *o, const double *d)
+{
+    for (int i = 0; i < 3; ++i) {
+        r->o[i] = o[i];
+        /* -0.0 and +0.0 are the same direction: normalise so 1/d is +inf for both
+         * and no sign of zero leaks into the traversal. */
+        r->d[i] = (fabs(d[i]) < GC_DIRECTION_FLUSH) ? 0.0 : d[i];
+        r->inv_d[i] = 1.0 / r->d[i];
+    }
+    double ax = fabs(r->d[0]), ay = fabs(r->d[1]), az = fabs(r->d[2]);
+    int kz = (ax > ay) ? ((ax > az) ? 0 : 2) : ((ay > az) ? 1 : 2);
+    int kx = kz + 1 == 3 ? 0 : kz + 1;
+    int ky = kx + 1 == 3 ? 0 : kx + 1;
+    if (r->d[kz] < 0.0) { /* keep the winding so the sign tests stay meaningful */
+        int tmp = kx;
+        kx = ky;
+        ky = tmp;
+    }
+    r->kx = kx;
+    r->ky = ky;
+    r->kz = kz;
+    r->sx = r->d[kx] / r->d[kz];
+    r->sy = r->d[ky] / r->d[kz];
+    r->sz = 1.0 / r->d[kz];
+}
+
+/* Validate a mesh: positive counts, indices in range, finite vertices used by faces. */
+gc_status gc_check_mesh(const gc_mesh *mesh, int allow_empty, char *err);
+
+/* Validate rays: finite origins, finite non-zero directions. */
+gc_status gc_check_rays(int64_t n, const double *origins, const double *directions, char *err);
+
+void gc_set_error(char *err, const char *fmt, ...)
+#if defined(__GNUC__)
+    __attribute__((format(printf, 2, 3)))
+#endif
+    ;
+
+#endif /* GC_INTERNAL_H */

@@ -1,0 +1,430 @@
+/* test_kernels.c - the kernels tested on their own, without Python.
+ *
+ * Every grid's first hits are compared with brute force; the timed and
+ * instrumented twins must agree exactly; bad input and oversized resolutions
+ * must be refused with a message.  Random cases are seeded by their index.
+ * Run under AddressSanitizer and UndefinedBehaviorSanitizer by
+ * `make test-sanitize`.
+ */
+#include "gridcal.h"
+
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+#define PI 3.14159265358979323846
+
+static int failures = 0;
+static int checks = 0;
+
+#define CHECK(cond, ...)                                                                           \
+    do {                                                                                           \
+        ++checks;                                                                                  \
+        if (!(cond)) {                                                                             \
+            ++failures;                                                                            \
+            fprintf(stderr, "FAIL %s:%d: ", __FILE__, __LINE__);                                   \
+            fprintf(stderr, __VA_ARGS__);                                                          \
+            fprintf(stderr, "\n");                                                                 \
+        }                                                                                          \
+    } while (0)
+
+/* xorshift64*: a small seeded generator so every case names its reproduction */
+static uint64_t rng_state;
+static void rng_seed(uint64_t s) { rng_state = s * 0x9E3779B97F4A7C15ull + 1; }
+static double rng_uniform(void)
+{
+    rng_state ^= rng_state >> 12;
+    rng_state ^= rng_state << 25;
+    rng_state ^= rng_state >> 27;
+    return (double)((rng_state * 2685821657736338717ull) >> 11) * (1.0 / 9007199254740992.0);
+}
+
+typedef struct {
+    double *v;
+    int64_t *f;
+    int64_t nv, nf;
+} mesh_buf;
+
+static void mesh_free(mesh_buf *m)
+{
+    free(m->v);
+    free(m->f);
+}
+
+static gc_mesh as_mesh(const mesh_buf *m)
+{
+    gc_mesh g = {m->v, m->nv, m->f, m->nf};
+    return g;
+}
+
+/* A closed UV sphere of radius `rad`, with shared vertices and jittered radius. */
+static mesh_buf uv_sphere(int rings, int segs, double rad, double jitter, uint64_t seed)
+{
+    mesh_buf m;
+    rng_seed(seed);
+    m.nv = (int64_t)(rings - 1) * segs + 2;
+    m.nf = (int64_t)2 * segs * (rings - 1);
+    m.v = malloc((size_t)m.nv * 3 * sizeof(double));
+    m.f = malloc((size_t)m.nf * 3 * sizeof(int64_t));
+    int64_t k = 0;
+    m.v[0] = 0, m.v[1] = 0, m.v[2] = rad;
+    k = 1;
+    for (int i = 1; i < rings; ++i) {
+        double th = PI * i / rings;
+        for (int j = 0; j < segs; ++j) {
+            double ph = 2 * PI * j / segs;
+            double rr = rad * (1.0 + jitter * (rng_uniform() - 0.5));
+            m.v[3 * k + 0] = rr * sin(th) * cos(ph);
+            m.v[3 * k + 1] = rr * sin(th) * sin(ph);
+            m.v[3 * k + 2] = rr * cos(th);
+            ++k;
+        }
+    }
+    m.v[3 * k + 0] = 0, m.v[3 * k + 1] = 0, m.v[3 * k + 2] = -rad;
+    int64_t south = k, f = 0;
+#define V(i, j) (1 + (int64_t)((i) - 1) * segs + ((j) % segs))
+    for (int j = 0; j < segs; ++j) {
+        m.f[3 * f + 0] = 0, m.f[3 * f + 1] = V(1, j), m.f[3 * f + 2] = V(1, j + 1), ++f;
+        m.f[3 * f + 0] = south, m.f[3 * f + 1] = V(rings - 1, j + 1), m.f[3 * f + 2] = V(rings - 1, j), ++f;
+    }
+    for (int i = 1; i < rings - 1; ++i) {
+        for (int j = 0; j < segs; ++j) {
+            m.f[3 * f + 0] = V(i, j), m.f[3 * f + 1] = V(i + 1, j), m.f[3 * f + 2] = V(i + 1, j + 1), ++f;
+            m.f[3 * f + 0] = V(i, j), m.f[3 * f + 1] = V(i + 1, j + 1), m.f[3 * f + 2] = V(i, j + 1), ++f;
+        }
+    }
+#undef V
+    m.nf = f;
+    return m;
+}
+
+/* n random triangles of size `size` in the unit cube */
+static mesh_buf random_soup(int64_t n, double size, uint64_t seed)
+{
+    mesh_buf m;
+    rng_seed(seed);
+    m.nv = 3 * n;
+    m.nf = n;
+    m.v = malloc((size_t)m.nv * 3 * sizeof(double));
+    m.f = malloc((size_t)m.nf * 3 * sizeof(int64_t));
+    for (int64_t t = 0; t < n; ++t) {
+        double c[3] = {rng_uniform(), rng_uniform(), rng_uniform()};
+        for (int k = 0; k < 3; ++k) {
+            for (int i = 0; i < 3; ++i) {
+                m.v[9 * t + 3 * k + i] = c[i] + size * (rng_uniform() - 0.5);
+            }
+            m.f[3 * t + k] = 3 * t + k;
+        }
+    }
+    return m;
+}
+
+/* rays from a sphere around the box towards random points in it */
+static void random_rays(int64_t n, const double lo[3], const double hi[3], uint64_t seed, double *o,
+                        double *d)
+{
+    rng_seed(seed);
+    double c[3], rad = 0;
+    for (int i = 0; i < 3; ++i) {
+        c[i] = 0.5 * (lo[i] + hi[i]);
+        rad += (hi[i] - lo[i]) * (hi[i] - lo[i]);
+    }
+    rad = sqrt(rad);
+    for (int64_t k = 0; k < n; ++k) {
+        double z = 2 * rng_uniform() - 1, ph = 2 * PI * rng_uniform(), s = sqrt(1 - z * z);
+        double p[3] = {s * cos(ph), s * sin(ph), z};
+        double len = 0;
+        for (int i = 0; i < 3; ++i) {
+            /* a quarter of the rays start inside the box */
+            o[3 * k + i] = (k % 4 == 0) ? lo[i] + (hi[i] - lo[i]) * rng_uniform() : c[i] + rad * p[i];
+            double target = lo[i] + (hi[i] - lo[i]) * rng_uniform();
+            d[3 * k + i] = target - o[3 * k + i];
+            len += d[3 * k + i] * d[3 * k + i];
+        }
+        if (k % 4 == 0) { /* random direction from inside */
+            double z2 = 2 * rng_uniform() - 1, ph2 = 2 * PI * rng_uniform(), s2 = sqrt(1 - z2 * z2);
+            d[3 * k + 0] = s2 * cos(ph2), d[3 * k + 1] = s2 * sin(ph2), d[3 * k + 2] = z2;
+        } else {
+            for (int i = 0; i < 3; ++i) {
+                d[3 * k + i] /= sqrt(len);
+            }
+        }
+    }
+}
+
+/* Compare one grid with brute force on n rays; returns the number of disagreements. */
+static int64_t compare_with_brute(const mesh_buf *mb, const gc_build_params *p, int64_t n,
+                                  const double *o, const double *d, const char *label)
+{
+    char err[GC_ERROR_LEN] = "";
+    gc_mesh mesh = as_mesh(mb);
+    gc_grid *g = NULL;
+    gc_status st = gc_grid_build(&mesh, p, &g, err);
+    CHECK(st == GC_OK, "%s: build failed: %s", label, err);
+    if (st != GC_OK) {
+        return n;
+    }
+    double *t = malloc((size_t)n * sizeof(double)), *tb = malloc((size_t)n * sizeof(double)),
+           *tc = malloc((size_t)n * sizeof(double));
+    int32_t *pr = malloc((size_t)n * sizeof(int32_t)), *pb = malloc((size_t)n * sizeof(int32_t)),
+            *pc = malloc((size_t)n * sizeof(int32_t));
+    uint32_t *steps = malloc((size_t)n * sizeof(uint32_t)), *tests = malloc((size_t)n * sizeof(uint32_t)),
+             *subs = malloc((size_t)n * sizeof(uint32_t));
+    CHECK(gc_intersect(g, n, o, d, t, pr, err) == GC_OK, "%s: intersect: %s", label, err);
+    CHECK(gc_count(g, n, o, d, tc, pc, steps, tests, subs, err) == GC_OK, "%s: count: %s", label, err);
+    CHECK(gc_brute_force(&mesh, p->intersector, n, o, d, tb, pb, err) == GC_OK, "%s: brute: %s", label,
+          err);
+    int64_t bad = 0, twin_bad = 0;
+    for (int64_t k = 0; k < n; ++k) {
+        if (t[k] != tc[k] || pr[k] != pc[k]) {
+            ++twin_bad;
+        }
+        int same = (t[k] == tb[k]) || (fabs(t[k] - tb[k]) <= 1e-9 * fabs(tb[k]));
+        if (!same) {
+            if (bad < 3) {
+                fprintf(stderr, "  %s ray %lld: grid t=%.17g prim=%d, brute t=%.17g prim=%d\n", label,
+                        (long long)k, t[k], pr[k], tb[k], pb[k]);
+            }
+            ++bad;
+        }
+    }
+    CHECK(twin_bad == 0, "%s: timed and instrumented twins disagree on %lld rays", label,
+          (long long)twin_bad);
+    CHECK(bad == 0, "%s: %lld of %lld first hits differ from brute force", label, (long long)bad,
+          (long long)n);
+    free(t), free(tb), free(tc), free(pr), free(pb), free(pc), free(steps), free(tests), free(subs);
+    gc_grid_free(g);
+    return bad;
+}
+
+static void test_grids_match_brute_force(void)
+{
+    mesh_buf meshes[3] = {uv_sphere(24, 48, 0.5, 0.1, 1), random_soup(400, 0.08, 2),
+                          random_soup(150, 0.6, 3)};
+    const char *names[3] = {"sphere", "compact soup", "long soup"};
+    const int64_t n = 2000;
+    double *o = malloc((size_t)n * 3 * sizeof(double)), *d = malloc((size_t)n * 3 * sizeof(double));
+    const int32_t resolutions[4][3] = {{1, 1, 1}, {3, 5, 2}, {16, 16, 16}, {40, 7, 23}};
+    for (int mi = 0; mi < 3; ++mi) {
+        double lo[3], hi[3];
+        char err[GC_ERROR_LEN];
+        gc_mesh mesh = as_mesh(&meshes[mi]);
+        CHECK(gc_mesh_box(&mesh, lo, hi, err) == GC_OK, "box: %s", err);
+        random_rays(n, lo, hi, 100 + (uint64_t)mi, o, d);
+        for (int ri = 0; ri < 4; ++ri) {
+            for (int isect = 0; isect < 2; ++isect) {
+                for (int mail = 0; mail < 2; ++mail) {
+                    for (int levels = 1; levels <= 3; ++levels) {
+                        gc_build_params p = gc_build_params_default();
+                        memcpy(p.resolution, resolutions[ri], sizeof p.resolution);
+                        p.intersector = isect ? GC_WATERTIGHT : GC_MOLLER_TRUMBORE;
+                        p.mailbox = mail;
+                        p.levels = levels;
+                        p.insertion = (ri == 1) ? GC_INSERT_BOUNDS : GC_INSERT_EXACT;
+                        for (int lv = 1; lv < levels; ++lv) {
+                            p.level_exponent[lv] = 3.0 / (2.0 * levels + 1 - 2.0 * lv);
+                        }
+                        char label[128];
+                        snprintf(label, sizeof label, "%s res %dx%dx%d isect %d mail %d levels %d",
+                                 names[mi], p.resolution[0], p.resolution[1], p.resolution[2], isect,
+                                 mail, levels);
+                        compare_with_brute(&meshes[mi], &p, n, o, d, label);
+                    }
+                }
+            }
+        }
+    }
+    free(o), free(d);
+    for (int mi = 0; mi < 3; ++mi) {
+        mesh_free(&meshes[mi]);
+    }
+}
+
+/* Axis-parallel rays with +0 and -0 components, along cell faces, edges and corners. */
+static void test_axis_parallel_and_cell_faces(void)
+{
+    mesh_buf m = random_soup(300, 0.1, 7);
+    gc_mesh mesh = as_mesh(&m);
+    double lo[3], hi[3];
+    char err[GC_ERROR_LEN];
+    CHECK(gc_mesh_box(&mesh, lo, hi, err) == GC_OK, "box: %s", err);
+    const int res = 8;
+    const int64_t n = 6 * 3 * (res + 1) * (res + 1);
+    double *o = malloc((size_t)n * 3 * sizeof(double)), *d = malloc((size_t)n * 3 * sizeof(double));
+    int64_t k = 0;
+    for (int axis = 0; axis < 3; ++axis) {
+        for (int sgn = 0; sgn < 2; ++sgn) {
+            for (int zero_sign = 0; zero_sign < 3; ++zero_sign) {
+                int a1 = (axis + 1) % 3, a2 = (axis + 2) % 3;
+                for (int i = 0; i <= res; ++i) {
+                    for (int j = 0; j <= res; ++j) {
+                        double *oo = o + 3 * k, *dd = d + 3 * k;
+                        /* on cell faces (i, j on the lattice), edges and corners */
+                        oo[a1] = lo[a1] + (hi[a1] - lo[a1]) * i / res;
+                        oo[a2] = lo[a2] + (hi[a2] - lo[a2]) * j / res;
+                        oo[axis] = sgn ? hi[axis] + 1.0 : lo[axis] - 1.0;
+                        dd[axis] = sgn ? -1.0 : 1.0;
+                        dd[a1] = zero_sign == 1 ? -0.0 : 0.0;
+                        dd[a2] = zero_sign == 2 ? -0.0 : 0.0;
+                        ++k;
+                    }
+                }
+            }
+        }
+    }
+    for (int isect = 0; isect < 2; ++isect) {
+        for (int levels = 1; levels <= 2; ++levels) {
+            gc_build_params p = gc_build_params_default();
+            p.resolution[0] = p.resolution[1] = p.resolution[2] = res;
+            p.intersector = isect ? GC_WATERTIGHT : GC_MOLLER_TRUMBORE;
+            p.levels = levels;
+            p.level_exponent[1] = 1.0;
+            compare_with_brute(&m, &p, k, o, d, "axis-parallel");
+        }
+    }
+    free(o), free(d);
+    mesh_free(&m);
+}
+
+/* pbrt's watertightness test: rays from inside a closed jittered mesh aimed
+ * exactly at its vertices and at edge midpoints must all hit. */
+static void test_watertight(void)
+{
+    mesh_buf m = uv_sphere(30, 60, 1.0, 0.2, 11);
+    gc_mesh mesh = as_mesh(&m);
+    const int64_t n = 20000;
+    double *o = malloc((size_t)n * 3 * sizeof(double)), *d = malloc((size_t)n * 3 * sizeof(double));
+    rng_seed(12);
+    for (int64_t k = 0; k < n; ++k) {
+        const int64_t f = (int64_t)(rng_uniform() * (double)m.nf) % m.nf;
+        const double *a = m.v + 3 * m.f[3 * f], *b = m.v + 3 * m.f[3 * f + 1];
+        double target[3];
+        for (int i = 0; i < 3; ++i) {
+            o[3 * k + i] = 0.3 * (rng_uniform() - 0.5);
+            target[i] = (k % 2 == 0) ? a[i] : 0.5 * (a[i] + b[i]);
+            d[3 * k + i] = target[i] - o[3 * k + i];
+        }
+    }
+    gc_build_params p = gc_build_params_default();
+    p.resolution[0] = p.resolution[1] = p.resolution[2] = 12;
+    char err[GC_ERROR_LEN];
+    int64_t leaks[2] = {0, 0};
+    for (int isect = 0; isect < 2; ++isect) {
+        p.intersector = isect ? GC_WATERTIGHT : GC_MOLLER_TRUMBORE;
+        gc_grid *g = NULL;
+        CHECK(gc_grid_build(&mesh, &p, &g, err) == GC_OK, "watertight build: %s", err);
+        double *t = malloc((size_t)n * sizeof(double));
+        int32_t *pr = malloc((size_t)n * sizeof(int32_t));
+        CHECK(gc_intersect(g, n, o, d, t, pr, err) == GC_OK, "watertight: %s", err);
+        for (int64_t k = 0; k < n; ++k) {
+            leaks[isect] += pr[k] < 0;
+        }
+        free(t), free(pr);
+        gc_grid_free(g);
+    }
+    CHECK(leaks[1] == 0, "watertight intersector leaked %lld of %lld rays", (long long)leaks[1],
+          (long long)n);
+    printf("watertightness: %lld rays at vertices and edges: watertight leaks %lld, "
+           "Moller-Trumbore leaks %lld\n",
+           (long long)n, (long long)leaks[1], (long long)leaks[0]);
+    free(o), free(d);
+    mesh_free(&m);
+}
+
+static void test_refusals(void)
+{
+    mesh_buf m = random_soup(10, 0.2, 5);
+    gc_mesh mesh = as_mesh(&m);
+    char err[GC_ERROR_LEN];
+    gc_grid *g = (gc_grid *)&err; /* must be reset to NULL on failure */
+    gc_build_params p = gc_build_params_default();
+
+    p.resolution[0] = 65536, p.resolution[1] = 65536, p.resolution[2] = 2;
+    err[0] = 0;
+    CHECK(gc_grid_build(&mesh, &p, &g, err) == GC_ERR_OVERFLOW && g == NULL && strstr(err, "overflow"),
+          "32-bit overflow not refused: %s", err);
+
+    p.resolution[0] = 2000, p.resolution[1] = 2000, p.resolution[2] = 500;
+    p.memory_limit_bytes = (uint64_t)64 << 20;
+    err[0] = 0;
+    CHECK(gc_grid_build(&mesh, &p, &g, err) == GC_ERR_MEMORY_LIMIT && g == NULL &&
+              strstr(err, "memory limit"),
+          "memory limit not refused: %s", err);
+
+    p = gc_build_params_default();
+    p.resolution[1] = 0;
+    CHECK(gc_grid_build(&mesh, &p, &g, err) == GC_ERR_ARGUMENT, "zero resolution not refused");
+
+    p = gc_build_params_default();
+    m.f[4] = m.nv; /* out of range */
+    CHECK(gc_grid_build(&mesh, &p, &g, err) == GC_ERR_ARGUMENT && strstr(err, "outside"),
+          "out-of-range index not refused: %s", err);
+    m.f[4] = -1;
+    CHECK(gc_grid_build(&mesh, &p, &g, err) == GC_ERR_ARGUMENT, "negative index not refused");
+    m.f[4] = 4;
+    m.v[5] = NAN;
+    CHECK(gc_grid_build(&mesh, &p, &g, err) == GC_ERR_ARGUMENT && strstr(err, "finite"),
+          "NaN vertex not refused: %s", err);
+    m.v[5] = 0.5;
+
+    gc_mesh empty = {m.v, m.nv, m.f, 0};
+    CHECK(gc_grid_build(&empty, &p, &g, err) == GC_ERR_ARGUMENT, "empty mesh without a box accepted");
+    p.has_box = 1;
+    for (int i = 0; i < 3; ++i) {
+        p.box_lo[i] = 0.0, p.box_hi[i] = 1.0;
+    }
+    p.resolution[0] = p.resolution[1] = p.resolution[2] = 4;
+    CHECK(gc_grid_build(&empty, &p, &g, err) == GC_OK, "empty grid with a box refused: %s", err);
+    double o[3] = {-1, 0.5, 0.5}, d[3] = {1, 0, 0}, t;
+    int32_t pr;
+    uint32_t steps;
+    CHECK(gc_count(g, 1, o, d, &t, &pr, &steps, NULL, NULL, err) == GC_OK && pr == -1 && steps == 4,
+          "empty grid: ray along x should visit 4 cells, visited %u", steps);
+    d[0] = 0;
+    CHECK(gc_intersect(g, 1, o, d, &t, &pr, err) == GC_ERR_ARGUMENT, "zero direction accepted");
+    d[0] = NAN;
+    CHECK(gc_intersect(g, 1, o, d, &t, &pr, err) == GC_ERR_ARGUMENT, "NaN direction accepted");
+    gc_grid_free(g);
+    mesh_free(&m);
+}
+
+/* Scaled scenes: hits scale exactly with the scene. */
+static void test_scaled_scenes(void)
+{
+    const double scales[3] = {1e-20, 1.0, 1e20};
+    const int64_t n = 500;
+    for (int si = 0; si < 3; ++si) {
+        mesh_buf m = uv_sphere(12, 24, 0.5, 0.1, 21);
+        for (int64_t k = 0; k < 3 * m.nv; ++k) {
+            m.v[k] *= scales[si];
+        }
+        gc_mesh mesh = as_mesh(&m);
+        double lo[3], hi[3];
+        char err[GC_ERROR_LEN];
+        CHECK(gc_mesh_box(&mesh, lo, hi, err) == GC_OK, "box: %s", err);
+        double *o = malloc((size_t)n * 3 * sizeof(double)), *d = malloc((size_t)n * 3 * sizeof(double));
+        random_rays(n, lo, hi, 22, o, d);
+        for (int isect = 0; isect < 2; ++isect) {
+            gc_build_params p = gc_build_params_default();
+            p.resolution[0] = p.resolution[1] = p.resolution[2] = 9;
+            p.intersector = isect ? GC_WATERTIGHT : GC_MOLLER_TRUMBORE;
+            char label[64];
+            snprintf(label, sizeof label, "scaled %g", scales[si]);
+            compare_with_brute(&m, &p, n, o, d, label);
+        }
+        free(o), free(d);
+        mesh_free(&m);
+    }
+}
+
+int main(void)
+{
+    test_refusals();
+    test_grids_match_brute_force();
+    test_axis_parallel_and_cell_faces();
+    test_watertight();
+    test_scaled_scenes();
+    printf("%d passed, %d failed\n", checks - failures, failures);
+    return failures ? 1 : 0;
+}

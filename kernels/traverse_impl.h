@@ -1,0 +1,124 @@
+/* traverse_impl.h - the one source of first-hit grid traversal.
+ *
+ * Included by traverse.c once per (twin, intersector) with:
+ *   GC_TW_COUNT  0 for the timed twin (counts compile away), 1 for the instrumented twin;
+ *   GC_TW_ISECT  the ray/triangle test, gc_isect_moller_trumbore or gc_isect_watertight;
+ *   GC_TW_NAME(x) the suffixing macro that names this instance's functions.
+ *
+ * 3D-DDA after Amanatides and Woo, "A Fast Voxel Traversal Algorithm for Ray
+ * Tracing", Eurographics 1987.  A node is walked over the ray interval [ta, tb]
+ * it was entered with; the entry cell is found from the entry point and clamped
+ * into the grid, so an interval that rounding puts a hair outside still walks
+ * the cells it covers.  A cell holding a subgrid walks the subgrid over the
+ * part of the interval inside the cell.  The walk ends once the best hit so far
+ * lies no farther than the current cell's exit: every triangle the ray meets
+ * before that point is stored in a cell already visited.
+ */
+
+static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *r, double ta,
+                             double tb, gc_hit *hit, gc_mail *mail
+#if GC_TW_COUNT
+                             ,
+                             gc_counts *cnt
+#endif
+)
+{
+    int32_t c[3], step[3], stop[3];
+    double t_next[3], dt[3];
+    for (int i = 0; i < 3; ++i) {
+        double p = r->o[i] + ta * r->d[i];
+        double f = floor((p - nd->lo[i]) * nd->inv_cell[i]);
+        double top = (double)(nd->n[i] - 1);
+        f = f > 0.0 ? (f < top ? f : top) : 0.0; /* NaN-free: p is finite */
+        c[i] = (int32_t)f;
+        if (r->d[i] > 0.0) {
+            step[i] = 1;
+            stop[i] = nd->n[i];
+            double edge = (c[i] + 1 == nd->n[i]) ? nd->hi[i] : nd->lo[i] + (double)(c[i] + 1) * nd->cell[i];
+            t_next[i] = (edge - r->o[i]) * r->inv_d[i];
+            dt[i] = nd->cell[i] * r->inv_d[i];
+        } else if (r->d[i] < 0.0) {
+            step[i] = -1;
+            stop[i] = -1;
+            double edge = nd->lo[i] + (double)c[i] * nd->cell[i];
+            t_next[i] = (edge - r->o[i]) * r->inv_d[i];
+            dt[i] = -nd->cell[i] * r->inv_d[i];
+        } else {
+            step[i] = 0;
+            stop[i] = -2; /* never reached */
+            t_next[i] = INFINITY;
+            dt[i] = INFINITY;
+        }
+    }
+    double t_enter = ta;
+    for (;;) {
+        const int axis = (t_next[0] < t_next[1]) ? (t_next[0] < t_next[2] ? 0 : 2)
+                                                 : (t_next[1] < t_next[2] ? 1 : 2);
+        const double t_exit = t_next[axis] < tb ? t_next[axis] : tb;
+        const gc_cell cell = g->cells[gc_cell_index(nd, c[0], c[1], c[2])];
+#if GC_TW_COUNT
+        cnt->steps++;
+#endif
+        if (cell.count == GC_CELL_SUBGRID) {
+#if GC_TW_COUNT
+            cnt->subgrids++;
+            GC_TW_NAME(walk)(g, &g->nodes[cell.begin], r, t_enter, t_exit, hit, mail, cnt);
+#else
+            GC_TW_NAME(walk)(g, &g->nodes[cell.begin], r, t_enter, t_exit, hit, mail);
+#endif
+        } else {
+            const uint32_t *ref = g->refs + cell.begin;
+            for (uint32_t k = 0; k < cell.count; ++k) {
+                const uint32_t prim = ref[k];
+                if (mail) {
+                    if (mail->stamp[prim] == mail->ray) {
+                        continue;
+                    }
+                    mail->stamp[prim] = mail->ray;
+                }
+#if GC_TW_COUNT
+                cnt->tests++;
+#endif
+                double t;
+                if (GC_TW_ISECT(r, &g->tris[prim], hit->t, &t)) {
+                    hit->t = t;
+                    hit->prim = (int32_t)prim;
+                }
+            }
+        }
+        if (hit->t <= t_exit || !(t_exit < tb)) {
+            return;
+        }
+        c[axis] += step[axis];
+        if (c[axis] == stop[axis]) {
+            return;
+        }
+        t_enter = t_next[axis];
+        t_next[axis] += dt[axis];
+    }
+}
+
+/* First hit of one prepared ray. */
+static void GC_TW_NAME(trace)(const gc_grid *g, const gc_ray *r, gc_hit *hit, gc_mail *mail
+#if GC_TW_COUNT
+                              ,
+                              gc_counts *cnt
+#endif
+)
+{
+    const gc_node *top = &g->nodes[0];
+    double t0 = 0.0, t1 = INFINITY;
+    hit->t = INFINITY;
+    hit->prim = -1;
+    if (mail) {
+        gc_mail_next_ray(mail);
+    }
+    if (!gc_ray_box_clip(r, top->lo, top->hi, &t0, &t1)) {
+        return;
+    }
+#if GC_TW_COUNT
+    GC_TW_NAME(walk)(g, top, r, t0, t1, hit, mail, cnt);
+#else
+    GC_TW_NAME(walk)(g, top, r, t0, t1, hit, mail);
+#endif
+}
