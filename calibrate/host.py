@@ -1,0 +1,140 @@
+"""Host fingerprint recorded with every calibration.
+
+pyperf stores CPU model, frequency, affinity and timer resolution with each
+result; this module gathers the same facts. Every probe is defensive: a missing
+file, an unreadable sysfs entry or an absent package yields ``None``, never an
+exception, and the result is plain JSON (str, int, float, bool, None, list, dict).
+The hostname is deliberately not recorded.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import importlib.metadata
+import json
+import os
+import platform
+from pathlib import Path
+
+from .protocol import timer_info
+
+__all__ = ["FINGERPRINT_PACKAGES", "fingerprint", "package_versions"]
+
+# Packages whose versions affect results or their fits.
+FINGERPRINT_PACKAGES = ("numpy", "nlopt", "emcee", "jax", "trimesh")
+# Linux sources (module-level so tests can point them at missing files).
+CPUINFO_PATH = Path("/proc/cpuinfo")
+CPUFREQ_DIR = Path("/sys/devices/system/cpu/cpu0/cpufreq")
+KHZ_PER_MHZ = 1000.0
+
+
+def _read_text(path: Path) -> str | None:
+    """File contents, or None if it cannot be read for any reason."""
+    try:
+        return Path(path).read_text(encoding="utf-8", errors="replace")
+    except (OSError, ValueError):
+        return None
+
+
+def _cpuinfo_field(text: str | None, key: str) -> str | None:
+    """First value of ``key`` in /proc/cpuinfo-style ``key : value`` text."""
+    if not text:
+        return None
+    for line in text.splitlines():
+        k, sep, v = line.partition(":")
+        if sep and k.strip() == key:
+            return v.strip() or None
+    return None
+
+
+def _to_float(s: str | None) -> float | None:
+    try:
+        return float(s) if s is not None else None
+    except ValueError:
+        return None
+
+
+def _cpu_model(cpuinfo: str | None) -> str | None:
+    model = _cpuinfo_field(cpuinfo, "model name")  # x86
+    if model is None:
+        model = _cpuinfo_field(cpuinfo, "Model")  # some ARM boards
+    if model is None:
+        model = platform.processor() or platform.machine() or None
+    return model
+
+
+def _cpu_mhz(cpuinfo: str | None) -> float | None:
+    """Current frequency of CPU 0 in MHz (cpufreq first, then /proc/cpuinfo)."""
+    khz = _to_float((_read_text(CPUFREQ_DIR / "scaling_cur_freq") or "").strip() or None)
+    if khz is not None:
+        return khz / KHZ_PER_MHZ
+    return _to_float(_cpuinfo_field(cpuinfo, "cpu MHz"))
+
+
+def _affinity() -> list[int] | None:
+    try:
+        return sorted(int(c) for c in os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return None
+
+
+def package_versions(names=FINGERPRINT_PACKAGES) -> dict[str, str | None]:
+    """Installed version of each distribution name, None when missing."""
+    out: dict[str, str | None] = {}
+    for name in names:
+        try:
+            out[name] = importlib.metadata.version(name)
+        except Exception:  # PackageNotFoundError or a broken metadata dir
+            out[name] = None
+    return out
+
+
+def _safe(probe, default=None):
+    try:
+        return probe()
+    except Exception:
+        return default
+
+
+def fingerprint(extra: dict | None = None) -> dict:
+    """Facts about this host that a calibration depends on.
+
+    extra : optional JSON-serialisable dict merged at top level (e.g. the
+        kernels' compiler and flags); a key that collides with a built-in key
+        raises ValueError.
+    Returns a JSON-serialisable dict with keys: cpu_model, logical_cores,
+    affinity (list of CPU indices or None), governor, cpu_mhz, os, kernel,
+    platform, machine, python, python_implementation, packages (name ->
+    version or None), timer (see ``protocol.timer_info``),
+    timer_resolution_ns, date_utc (ISO 8601). Missing facts are None.
+    """
+    cpuinfo = _read_text(CPUINFO_PATH)
+    governor = _read_text(CPUFREQ_DIR / "scaling_governor")
+    timer = _safe(timer_info, {})
+    fp = {
+        "cpu_model": _safe(lambda: _cpu_model(cpuinfo)),
+        "logical_cores": _safe(os.cpu_count),
+        "affinity": _affinity(),
+        "governor": (governor.strip() or None) if governor is not None else None,
+        "cpu_mhz": _safe(lambda: _cpu_mhz(cpuinfo)),
+        "os": _safe(platform.system) or None,
+        "kernel": _safe(platform.release) or None,
+        "platform": _safe(platform.platform) or None,
+        "machine": _safe(platform.machine) or None,
+        "python": platform.python_version(),
+        "python_implementation": platform.python_implementation(),
+        "packages": package_versions(),
+        "timer": timer,
+        "timer_resolution_ns": timer.get("resolution_ns"),
+        "date_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+    }
+    if extra:
+        clash = sorted(set(extra) & set(fp))
+        if clash:
+            raise ValueError(f"fingerprint: extra keys collide with built-in keys {clash}")
+        try:
+            json.dumps(extra)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"fingerprint: extra is not JSON-serialisable ({exc})") from exc
+        fp.update(extra)
+    return fp

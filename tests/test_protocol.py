@@ -1,0 +1,372 @@
+"""Measurement protocol, tested with fake run callables (no kernels, no sleeping)."""
+
+import json
+import math
+import os
+
+import numpy as np
+import pytest
+
+from calibrate.protocol import (
+    MAD_TO_SIGMA,
+    REL_SPREAD_WARN,
+    TIMER_RESOLUTION_FACTOR,
+    Measurement,
+    MeasurementInterrupted,
+    calibrate_loops,
+    measure,
+    median_mad,
+    pin_to_one_core,
+    timer_info,
+)
+
+# Planted cost of one loop of a fake batch, ns.
+NS_PER_LOOP = 1234.5
+# A small minimum value keeps loop counts (and the fakes' bookkeeping) small.
+MIN_VALUE_NS = 100_000
+# Planted timer resolution for tests that must not depend on the host's.
+RES_NS = 1.0
+
+
+class FakeRun:
+    """run(loops) -> (elapsed_ns, checksum) with planted cost and noise.
+
+    ns_per_loop : planted cost, ns. noise_sigma : log-normal multiplicative
+    noise per value. slow_first / slow_factor : the first `slow_first` calls
+    take `slow_factor` times longer (a cold cache). log : shared list that
+    records (name, loops) of every call. clock : optional FakeClock advanced by
+    each call's elapsed time. fail_at : raise KeyboardInterrupt on this call.
+    """
+
+    def __init__(self, name, ns_per_loop=NS_PER_LOOP, *, rng=None, noise_sigma=0.0,
+                 slow_first=0, slow_factor=1.0, log=None, clock=None, fail_at=None):
+        self.name, self.ns_per_loop = name, ns_per_loop
+        self.rng, self.noise_sigma = rng, noise_sigma
+        self.slow_first, self.slow_factor = slow_first, slow_factor
+        self.log = [] if log is None else log
+        self.clock, self.fail_at = clock, fail_at
+        self.calls = 0
+
+    def __call__(self, loops):
+        self.calls += 1
+        if self.fail_at is not None and self.calls == self.fail_at:
+            raise KeyboardInterrupt
+        self.log.append((self.name, loops))
+        factor = self.slow_factor if self.calls <= self.slow_first else 1.0
+        if self.noise_sigma:
+            factor *= math.exp(self.noise_sigma * self.rng.standard_normal())
+        elapsed = int(loops * self.ns_per_loop * factor)
+        if self.clock is not None:
+            self.clock.t += elapsed * 1e-9
+        return elapsed, float(loops)
+
+
+class FakeClock:
+    """Monotonic seconds, advanced only by fake runs."""
+
+    def __init__(self):
+        self.t = 0.0
+
+    def __call__(self):
+        return self.t
+
+
+def preset(names, loops, rounds=0):
+    """Measurements as if calibrated earlier (the resume path): no calibration calls."""
+    return {n: Measurement(loops=loops, target_values=rounds) for n in names}
+
+
+# -- loop calibration ---------------------------------------------------------------
+
+
+@pytest.mark.parametrize("i", range(6))
+def test_calibrate_loops_is_smallest_power_of_two_reaching_minimum(i):
+    rng = np.random.default_rng(1000 + i)
+    ns = float(rng.uniform(10.0, 50_000.0))
+    run = FakeRun("a", ns)
+    loops, notes = calibrate_loops(run, min_value_ns=MIN_VALUE_NS)
+    assert notes == []
+    assert loops & (loops - 1) == 0  # power of two
+    assert int(loops * ns) >= MIN_VALUE_NS
+    assert loops == 1 or int(loops // 2 * ns) < MIN_VALUE_NS
+    # doubling from 1: one call per power of two up to loops
+    assert [l for _, l in run.log] == [2**k for k in range(loops.bit_length())]
+
+
+def test_measure_values_last_at_least_min_value():
+    out = measure({"a": FakeRun("a", 37.0), "b": FakeRun("b", 5000.0)},
+                  rng=np.random.default_rng(1100), rounds=4, warmups=1,
+                  min_value_ns=MIN_VALUE_NS, timer_resolution_ns=RES_NS)
+    for name, ns in (("a", 37.0), ("b", 5000.0)):
+        m = out[name]
+        assert len(m.values_ns) == 4
+        assert all(v * m.loops >= MIN_VALUE_NS - 1 for v in m.values_ns)
+        assert m.median == pytest.approx(ns, rel=1e-3)
+        assert m.warnings == []
+
+
+def test_loop_cap_is_reported():
+    out = measure({"a": FakeRun("a", 1.0)}, rng=np.random.default_rng(1200), rounds=3,
+                  warmups=0, min_value_ns=MIN_VALUE_NS, max_loops=64,
+                  timer_resolution_ns=RES_NS)
+    assert out["a"].loops == 64
+    assert any("capped at 64" in w for w in out["a"].warnings)
+
+
+# -- warm-ups ------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("warmups", [1, 3])
+def test_warmups_are_discarded(warmups):
+    slow = 10.0
+    runs = {n: FakeRun(n, slow_first=warmups, slow_factor=slow) for n in "abc"}
+    out = measure(runs, rng=np.random.default_rng(1300 + warmups), rounds=5,
+                  warmups=warmups, into=preset(runs, 128), timer_resolution_ns=RES_NS)
+    for m in out.values():
+        assert len(m.warmups_ns) == warmups
+        assert all(v == pytest.approx(slow * NS_PER_LOOP, rel=1e-3) for v in m.warmups_ns)
+        assert all(v == pytest.approx(NS_PER_LOOP, rel=1e-3) for v in m.values_ns)
+
+
+def test_without_warmups_the_slow_first_call_pollutes_values():
+    # the same fake with warmups=0: the planted slow call lands in the values
+    runs = {"a": FakeRun("a", slow_first=1, slow_factor=10.0)}
+    out = measure(runs, rng=np.random.default_rng(1310), rounds=5, warmups=0,
+                  into=preset(runs, 128), timer_resolution_ns=RES_NS)
+    assert max(out["a"].values_ns) == pytest.approx(10.0 * NS_PER_LOOP, rel=1e-3)
+
+
+# -- interleaving ----------------------------------------------------------------------
+
+
+def _round_orders(seed, names="abcde", rounds=8):
+    log = []
+    runs = {n: FakeRun(n, log=log) for n in names}
+    measure(runs, rng=np.random.default_rng(seed), rounds=rounds, warmups=0,
+            into=preset(runs, 64), timer_resolution_ns=RES_NS)
+    k = len(names)
+    return [tuple(n for n, _ in log[r * k:(r + 1) * k]) for r in range(rounds)]
+
+
+def test_rounds_are_random_permutations_reproducible_by_seed():
+    orders = _round_orders(1400)
+    assert all(sorted(o) == list("abcde") for o in orders)  # each round times all once
+    assert len(set(orders)) > 1  # order differs between rounds
+    assert orders == _round_orders(1400)  # same seed, same schedule
+    assert orders != _round_orders(1401)
+
+
+# -- statistics ------------------------------------------------------------------------
+
+
+def test_median_mad_planted():
+    med, mad = median_mad([1.0, 2.0, 3.0, 4.0, 100.0])
+    assert (med, mad) == (3.0, 1.0)  # deviations 2,1,0,1,97
+    med, mad = median_mad([4.0, 1.0, 3.0, 2.0])
+    assert (med, mad) == (2.5, 1.0)  # deviations 1.5,1.5,0.5,0.5
+
+
+@pytest.mark.parametrize("i", range(4))
+def test_median_mad_matches_brute_force(i):
+    rng = np.random.default_rng(1500 + i)
+    v = rng.lognormal(7.0, 0.5, size=int(rng.integers(1, 40)))
+
+    def brute_median(x):
+        s = sorted(x)
+        n = len(s)
+        return s[n // 2] if n % 2 else 0.5 * (s[n // 2 - 1] + s[n // 2])
+
+    med, mad = median_mad(v)
+    assert med == pytest.approx(brute_median(v), rel=1e-12)
+    assert mad == pytest.approx(brute_median([abs(x - med) for x in v]), rel=1e-12)
+
+
+def test_scaled_mad_estimates_sigma():
+    sigma = 5.0
+    v = np.random.default_rng(1600).normal(100.0, sigma, size=20_000)
+    assert MAD_TO_SIGMA * median_mad(v)[1] == pytest.approx(sigma, rel=0.03)
+
+
+def test_measurement_reports_planted_values():
+    planted = [1000.0, 1010.0, 990.0, 1500.0, 1005.0]  # deviations 5, 5, 15, 495, 0
+    it = iter(planted)
+    runs = {"a": lambda loops: (int(next(it) * loops), 0.0)}
+    out = measure(runs, rng=np.random.default_rng(1700), rounds=5, warmups=0,
+                  into=preset(runs, 1000), timer_resolution_ns=RES_NS)
+    m = out["a"]
+    assert m.values_ns == planted
+    assert m.median == 1005.0 and m.mad == 5.0
+    assert m.rel_spread == pytest.approx(MAD_TO_SIGMA * 5.0 / 1005.0)
+
+
+# -- warnings --------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("i", range(3))
+def test_spread_warning_fires_on_noisy_not_on_quiet(i):
+    rng = np.random.default_rng(1800 + i)
+    runs = {"noisy": FakeRun("noisy", rng=rng, noise_sigma=0.4),
+            "quiet": FakeRun("quiet", rng=rng, noise_sigma=0.002)}
+    out = measure(runs, rng=rng, rounds=15, warmups=1, min_value_ns=MIN_VALUE_NS,
+                  timer_resolution_ns=RES_NS)
+    assert out["noisy"].rel_spread > REL_SPREAD_WARN
+    assert any("large spread" in w for w in out["noisy"].warnings)
+    assert out["quiet"].rel_spread < REL_SPREAD_WARN
+    assert out["quiet"].warnings == []
+
+
+def test_too_short_warning_relative_to_timer_resolution():
+    res_ns = 1000.0  # planted: values of ~100 us are under 1000 x 1 us
+    out = measure({"a": FakeRun("a")}, rng=np.random.default_rng(1900), rounds=3,
+                  warmups=0, min_value_ns=MIN_VALUE_NS, timer_resolution_ns=res_ns)
+    m = out["a"]
+    assert min(m.values_ns) * m.loops < TIMER_RESOLUTION_FACTOR * res_ns
+    assert any("too short" in w for w in m.warnings)
+    out = measure({"a": FakeRun("a")}, rng=np.random.default_rng(1901), rounds=3,
+                  warmups=0, min_value_ns=MIN_VALUE_NS, timer_resolution_ns=RES_NS)
+    assert not any("too short" in w for w in out["a"].warnings)
+
+
+# -- stopping, interrupting, resuming ------------------------------------------------
+
+
+def test_deadline_stops_between_values_keeping_partial_data():
+    clock = FakeClock()
+    starts = []
+    runs = {}
+    for n in "ab":
+        fake = FakeRun(n, clock=clock)
+        runs[n] = (lambda f: lambda loops: (starts.append(clock()), f(loops))[1])(fake)
+    rounds = 20
+    # calibration ~0.2 ms per config; each value ~0.16 ms: the deadline falls mid-rounds
+    deadline = 2.0e-3
+    out = measure(runs, rng=np.random.default_rng(2000), rounds=rounds, warmups=1,
+                  min_value_ns=MIN_VALUE_NS, deadline=deadline, clock=clock,
+                  timer_resolution_ns=RES_NS)
+    counts = [len(m.values_ns) for m in out.values()]
+    assert all(0 < c < rounds for c in counts)
+    assert abs(counts[0] - counts[1]) <= 1  # interleaved: both stopped in the same round
+    assert all(s < deadline for s in starts)  # no value started after the deadline
+    assert all(any("stopped early" in w for w in m.warnings) for m in out.values())
+    assert all(not m.complete for m in out.values())
+
+
+def test_should_stop_sees_partial_results():
+    seen = []
+
+    def enough(results):
+        seen.append(sum(len(m.values_ns) for m in results.values()))
+        return seen[-1] >= 5
+
+    runs = {n: FakeRun(n) for n in "abc"}
+    out = measure(runs, rng=np.random.default_rng(2100), rounds=10, warmups=0,
+                  into=preset(runs, 64), should_stop=enough, timer_resolution_ns=RES_NS)
+    assert sum(len(m.values_ns) for m in out.values()) == 5
+
+
+def test_interrupt_keeps_partial_data_and_resume_completes():
+    log = []
+    runs = {n: FakeRun(n, log=log) for n in "abc"}
+    # calibration of NS_PER_LOOP to 100 us takes 8 calls (loops 1..128)
+    runs["b"].fail_at = 8 + 1 + 4  # calibration, warm-up, then the 4th value of b
+    into = {}
+    with pytest.raises(MeasurementInterrupted) as info:
+        measure(runs, rng=np.random.default_rng(2200), rounds=6, warmups=1,
+                min_value_ns=MIN_VALUE_NS, into=into, timer_resolution_ns=RES_NS)
+    assert isinstance(info.value, KeyboardInterrupt)
+    assert info.value.measurements is into
+    assert len(into["b"].values_ns) == 3
+    assert all(3 <= len(into[n].values_ns) <= 4 for n in "ac")
+    loops = {n: m.loops for n, m in into.items()}
+
+    # save and reload as the CLI would, then resume with healthy callables
+    saved = json.loads(json.dumps({n: m.to_dict() for n, m in into.items()}))
+    resumed = {n: Measurement.from_dict(d) for n, d in saved.items()}
+    log2 = []
+    runs2 = {n: FakeRun(n, log=log2) for n in "abc"}
+    out = measure(runs2, rng=np.random.default_rng(2201), rounds=6, warmups=1,
+                  min_value_ns=MIN_VALUE_NS, into=resumed, timer_resolution_ns=RES_NS)
+    assert out is resumed
+    assert all(len(m.values_ns) == 6 and m.complete and m.warnings == [] for m in out.values())
+    assert {n: m.loops for n, m in out.items()} == loops
+    assert {l for _, l in log2} == set(loops.values())  # no recalibration
+
+
+def test_interrupt_during_calibration_keeps_calibrated_configs():
+    runs = {"a": FakeRun("a"), "b": FakeRun("b", fail_at=3)}
+    into = {}
+    with pytest.raises(MeasurementInterrupted):
+        measure(runs, rng=np.random.default_rng(2300), rounds=3, warmups=0,
+                min_value_ns=MIN_VALUE_NS, into=into, timer_resolution_ns=RES_NS)
+    assert list(into) == ["a"] and into["a"].loops == 128
+
+
+def test_progress_counts_every_warmup_and_value():
+    calls = []
+    runs = {n: FakeRun(n) for n in "ab"}
+    measure(runs, rng=np.random.default_rng(2400), rounds=4, warmups=2,
+            min_value_ns=MIN_VALUE_NS, progress=lambda d, t, s: calls.append((d, t, s)),
+            timer_resolution_ns=RES_NS)
+    counted = [(d, t) for d, t, _ in calls if t > 0]
+    assert counted == [(k, 12) for k in range(1, 13)]
+    assert sum(s.startswith("calibrating") for _, _, s in calls) == 2
+
+
+# -- input validation and serialisation ----------------------------------------------
+
+
+def test_bad_input_raises_value_error():
+    rng = np.random.default_rng(2500)
+    with pytest.raises(ValueError, match="no configurations"):
+        measure({}, rng=rng)
+    with pytest.raises(ValueError, match="rounds"):
+        measure({"a": FakeRun("a")}, rng=rng, rounds=0)
+    with pytest.raises(ValueError, match="Generator"):
+        measure({"a": FakeRun("a")}, rng=np.random.RandomState(0))
+    with pytest.raises(ValueError, match="not callable"):
+        measure({"a": 3}, rng=rng)
+    with pytest.raises(ValueError, match="negative"):
+        measure({"a": lambda loops: (-5, 0.0)}, rng=rng, timer_resolution_ns=RES_NS)
+    with pytest.raises(ValueError, match="elapsed_ns, checksum"):
+        measure({"a": lambda loops: 5}, rng=rng, timer_resolution_ns=RES_NS)
+    with pytest.raises(ValueError, match="loops"):
+        Measurement.from_dict({"loops": 0, "values_ns": []})
+
+
+def test_measurement_round_trips_through_json():
+    m = Measurement(loops=64, values_ns=[10.0, 11.0, 12.5], target_values=4,
+                    timer_resolution_ns=20.0, warmups_ns=[30.0], notes=["n"])
+    d = json.loads(json.dumps(m.to_dict()))
+    assert d["median_ns"] == 11.0
+    assert Measurement.from_dict(d) == m
+
+
+# -- host helpers -----------------------------------------------------------------------
+
+
+def test_timer_info_reports_a_positive_resolution():
+    info = timer_info()
+    json.dumps(info)
+    assert math.isfinite(info["resolution_ns"]) and info["resolution_ns"] >= 1.0
+    if info["clock_getres_ns"] is not None:
+        assert info["resolution_ns"] >= info["clock_getres_ns"]
+
+
+def test_pin_to_one_core_and_restore():
+    if not hasattr(os, "sched_setaffinity"):
+        assert pin_to_one_core().core is None
+        return
+    before = os.sched_getaffinity(0)
+    with pin_to_one_core() as pin:
+        if pin.core is not None:
+            assert os.sched_getaffinity(0) == {pin.core} and pin.core == max(before)
+    assert os.sched_getaffinity(0) == before
+    with pytest.raises(ValueError, match="affinity set"):
+        pin_to_one_core(core=max(before) + 1000)
+
+
+def test_pin_is_a_noop_without_affinity_support(monkeypatch):
+    monkeypatch.delattr(os, "sched_setaffinity", raising=False)
+    pin = pin_to_one_core()
+    assert pin.core is None and "not pinned" in pin.note
+    pin.restore()  # harmless
