@@ -1,0 +1,433 @@
+"""Scene and Grid: the Python face of the C kernels.
+
+A :class:`Scene` is a validated triangle mesh (``vertices (V, 3) float64``,
+``faces (F, 3) int64``) with its grid box.  A :class:`Grid` is a built uniform
+or nested grid over a scene; it traces rays with the timed twin
+(:meth:`Grid.intersect`, :meth:`Grid.bench`) and counts work with the
+instrumented twin (:meth:`Grid.count`).  Every bad input raises ``ValueError``
+with a message naming the problem.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from models.stats import grid_box
+
+from . import _kernels
+
+#: Intersector names accepted wherever one is chosen.
+INTERSECTORS = {
+    "watertight": _kernels.WATERTIGHT,
+    "moller-trumbore": _kernels.MOLLER_TRUMBORE,
+}
+_INTERSECTOR_ALIASES = {"wt": "watertight", "mt": "moller-trumbore", "moller_trumbore": "moller-trumbore"}
+INSERTIONS = {"exact": _kernels.INSERT_EXACT, "bounds": _kernels.INSERT_BOUNDS}
+#: Manta RecursiveGrid's per-level constant: total cells = (8 n)^(3 / (2L + 1 - 2 depth)).
+MANTA_SCALE = 8.0
+#: Cells holding at most this many references keep their list instead of a subgrid.
+DEFAULT_SUBDIVIDE_THRESHOLD = 2
+#: Largest per-axis resolution the nesting rule gives a subgrid.
+DEFAULT_RULE_MAX_AXIS = 256
+#: Levels a nested grid may have (top level included).
+MAX_LEVELS = _kernels.MAX_LEVELS
+
+
+def intersector_code(name: str) -> int:
+    """The kernel code for an intersector name ('watertight' or 'moller-trumbore')."""
+    key = _INTERSECTOR_ALIASES.get(str(name).lower(), str(name).lower())
+    if key not in INTERSECTORS:
+        raise ValueError(f"unknown intersector {name!r}; choose one of {', '.join(INTERSECTORS)}")
+    return INTERSECTORS[key]
+
+
+def _check_vertices_faces(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
+    v = np.asarray(vertices)
+    f = np.asarray(faces)
+    if v.ndim != 2 or v.shape[1] != 3:
+        raise ValueError(f"vertices must have shape (V, 3), got {v.shape}")
+    if f.ndim != 2:
+        raise ValueError(f"faces must have shape (F, 3), got {f.shape}")
+    if f.shape[1] != 3:
+        raise ValueError(f"faces must be triangles with 3 vertex indices each, got {f.shape[1]} per face")
+    if f.shape[0] == 0:
+        raise ValueError("the mesh is empty: it has no faces")
+    if v.shape[0] == 0:
+        raise ValueError("the mesh has faces but no vertices")
+    if not (np.issubdtype(v.dtype, np.floating) or np.issubdtype(v.dtype, np.integer)):
+        raise ValueError(f"vertices must be numbers, got dtype {v.dtype}")
+    if not np.issubdtype(f.dtype, np.integer):
+        if np.issubdtype(f.dtype, np.floating) and np.all(np.isfinite(f)) and np.all(f == np.round(f)):
+            f = f.astype(np.int64)
+        else:
+            raise ValueError(f"faces must be integer vertex indices, got dtype {f.dtype}")
+    v = np.ascontiguousarray(v, dtype=np.float64)
+    f = np.ascontiguousarray(f, dtype=np.int64)
+    bad = ~np.isfinite(v).all(axis=1)
+    if bad.any():
+        raise ValueError(f"{int(bad.sum())} vertices have NaN or Inf coordinates (first: vertex {int(np.argmax(bad))})")
+    if f.min() < 0:
+        raise ValueError(f"face {int(np.argmin(f.min(axis=1)))} has a negative vertex index {int(f.min())}")
+    if f.max() >= v.shape[0]:
+        raise ValueError(
+            f"face {int(np.argmax(f.max(axis=1)))} refers to vertex {int(f.max())}, "
+            f"but the mesh has only {v.shape[0]} vertices")
+    return v, f
+
+
+class Scene:
+    """A triangle mesh ready for gridding.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float64
+        Vertex positions (scene units).
+    faces : (F, 3) int64
+        Vertex indices of each triangle.
+    name : str, optional
+        A label for reports.
+    """
+
+    def __init__(self, vertices, faces, name: str | None = None):
+        v, f = _check_vertices_faces(vertices, faces)
+        v.setflags(write=False)
+        f.setflags(write=False)
+        self.vertices = v
+        self.faces = f
+        self.name = name or "mesh"
+        used = v[f.reshape(-1)]
+        lo, hi = grid_box(used.min(axis=0), used.max(axis=0))
+        #: (3,) float64 corners of the grid box: the mesh's box, degenerate axes widened.
+        self.box_lo = lo
+        self.box_hi = hi
+        self._stats = None
+
+    @property
+    def n_triangles(self) -> int:
+        return int(self.faces.shape[0])
+
+    @property
+    def stats(self):
+        """The scene statistics of :func:`models.stats.scene_stats` (computed once)."""
+        if self._stats is None:
+            from models.stats import scene_stats
+
+            self._stats = scene_stats(self.vertices, self.faces)
+        return self._stats
+
+    def __repr__(self) -> str:
+        return f"Scene({self.name!r}, {self.n_triangles} triangles)"
+
+    @classmethod
+    def from_file(cls, path) -> "Scene":
+        """Load a mesh file in any format trimesh reads (OBJ, PLY, STL, OFF, glTF, ...).
+
+        Raises ``ValueError`` naming the file when it is missing, unreadable,
+        not a triangle mesh, or empty.
+        """
+        import trimesh
+
+        p = Path(path)
+        if not p.exists():
+            raise ValueError(f"{p}: no such file")
+        if p.is_dir():
+            raise ValueError(f"{p}: is a directory, not a mesh file")
+        if not os.access(p, os.R_OK):
+            raise ValueError(f"{p}: not readable")
+        if p.stat().st_size == 0:
+            raise ValueError(f"{p}: the file is empty")
+        try:
+            loaded = trimesh.load(str(p), force="mesh", process=False)
+        except Exception as exc:  # trimesh raises many types for a corrupt file
+            raise ValueError(f"{p}: cannot read it as a mesh ({type(exc).__name__}: {exc})") from None
+        if isinstance(loaded, list):
+            loaded = [m for m in loaded if hasattr(m, "faces")]
+            if not loaded:
+                raise ValueError(f"{p}: holds no triangle mesh")
+            loaded = trimesh.util.concatenate(loaded)
+        faces = getattr(loaded, "faces", None)
+        vertices = getattr(loaded, "vertices", None)
+        if faces is None or vertices is None or len(faces) == 0:
+            raise ValueError(f"{p}: holds no triangles (is it a point cloud, or truncated?)")
+        try:
+            return cls(np.asarray(vertices), np.asarray(faces), name=p.name)
+        except ValueError as exc:
+            raise ValueError(f"{p}: {exc}") from None
+
+    @classmethod
+    def builtin(cls, name: str) -> "Scene":
+        """One of the built-in procedural scenes (see :mod:`calibrate.scenes`)."""
+        from .scenes import load_builtin
+
+        v, f = load_builtin(name)
+        return cls(v, f, name=name)
+
+    @classmethod
+    def load(cls, spec) -> "Scene":
+        """A built-in scene's name or a mesh file's path."""
+        if isinstance(spec, Scene):
+            return spec
+        from .scenes import builtin_names
+
+        if str(spec) in builtin_names():
+            return cls.builtin(str(spec))
+        if not Path(str(spec)).exists() and os.sep not in str(spec) and "." not in str(spec):
+            raise ValueError(
+                f"{spec!r} is neither a mesh file nor a built-in scene; built-in scenes: "
+                f"{', '.join(builtin_names())}")
+        return cls.from_file(spec)
+
+
+def _check_rays(origins, directions) -> tuple[np.ndarray, np.ndarray]:
+    o = np.asarray(origins)
+    d = np.asarray(directions)
+    for name, a in (("origins", o), ("directions", d)):
+        if a.ndim != 2 or a.shape[1] != 3:
+            raise ValueError(f"{name} must have shape (n, 3), got {a.shape}")
+        if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
+            raise ValueError(f"{name} must be numbers, got dtype {a.dtype}")
+    if o.shape[0] != d.shape[0]:
+        raise ValueError(f"origins and directions differ in length: {o.shape[0]} and {d.shape[0]} rays")
+    o = np.ascontiguousarray(o, dtype=np.float64)
+    d = np.ascontiguousarray(d, dtype=np.float64)
+    for name, a in (("origins", o), ("directions", d)):
+        bad = ~np.isfinite(a).all(axis=1)
+        if bad.any():
+            raise ValueError(f"{name} of {int(bad.sum())} rays contain NaN or Inf (first: ray {int(np.argmax(bad))})")
+    zero = ~(d != 0).any(axis=1)
+    if zero.any():
+        raise ValueError(f"{int(zero.sum())} rays have a zero direction (first: ray {int(np.argmax(zero))})")
+    return o, d
+
+
+def _check_resolution(resolution, what="resolution") -> tuple[int, int, int]:
+    try:
+        res = tuple(int(x) for x in resolution)
+        exact = all(float(x) == int(x) for x in resolution)
+    except (TypeError, ValueError, OverflowError):
+        raise ValueError(f"{what} must be three whole numbers (nx, ny, nz), got {resolution!r}") from None
+    if len(res) != 3 or not exact:
+        raise ValueError(f"{what} must be three whole numbers (nx, ny, nz), got {resolution!r}")
+    if min(res) < 1:
+        raise ValueError(f"{what} {res[0]}x{res[1]}x{res[2]}: every axis needs at least 1 cell")
+    if max(res) > 2**31 - 1:
+        raise ValueError(f"{what} {res[0]}x{res[1]}x{res[2]}: an axis exceeds 2^31 - 1 cells")
+    return res
+
+
+def manta_rule(levels: int, scale: float = MANTA_SCALE) -> tuple[list[float], list[float]]:
+    """Per-depth (scale, exponent) of Manta's RecursiveGrid rule for an L-level grid.
+
+    A (sub)grid at depth d over n references gets (scale * n)^(3 / (2L + 1 - 2d))
+    cells in all (Ize, Shirley and Parker 2007; Manta used scale 8).
+    """
+    scales = [float(scale)] * MAX_LEVELS
+    exponents = [1.0] * MAX_LEVELS
+    for d in range(min(levels, MAX_LEVELS)):
+        exponents[d] = 3.0 / (2 * levels + 1 - 2 * d)
+    return scales, exponents
+
+
+def resolution_for_cells(total_cells: float, extent) -> tuple[int, int, int]:
+    """Near-cubic cells: n_i = d_i * cbrt(M / (d_x d_y d_z)), rounded, each >= 1 (log space)."""
+    e = np.asarray(extent, dtype=np.float64)
+    logs = np.log(e) + (math.log(max(total_cells, 1.0)) - np.log(e).sum()) / 3.0
+    return tuple(int(max(1, min(2**31 - 1, round(math.exp(min(x, 40.0)))))) for x in logs)
+
+
+class Grid:
+    """A built grid over a :class:`Scene`.  Build with :meth:`uniform` or :meth:`nested`."""
+
+    def __init__(self, scene: Scene, capsule, options: dict):
+        self.scene = scene
+        self._capsule = capsule
+        self.options = options
+        self._info = _kernels.info(capsule)
+
+    # -- construction -------------------------------------------------------------
+    @classmethod
+    def _build(cls, scene: Scene, resolution, *, intersector, mailbox, insertion, levels, threshold,
+               level_scale, level_exponent, subgrid_resolutions, rule_max_axis, memory_limit):
+        if not isinstance(scene, Scene):
+            raise ValueError(f"scene must be a calibrate.Scene, got {type(scene).__name__}")
+        res = _check_resolution(resolution)
+        if insertion not in INSERTIONS:
+            raise ValueError(f"unknown insertion {insertion!r}; choose one of {', '.join(INSERTIONS)}")
+        if memory_limit is not None and (not isinstance(memory_limit, (int, np.integer)) or memory_limit <= 0):
+            raise ValueError(f"memory_limit must be a positive number of bytes, got {memory_limit!r}")
+        box = list(scene.box_lo) + list(scene.box_hi)
+        options = dict(resolution=res, intersector=intersector, mailbox=bool(mailbox), insertion=insertion,
+                       levels=levels, threshold=threshold)
+        try:
+            cap = _kernels.build(
+                scene.vertices, scene.faces, res, intersector=intersector_code(intersector),
+                insertion=INSERTIONS[insertion], mailbox=bool(mailbox), box=box,
+                memory_limit=int(memory_limit or 0), levels=int(levels), threshold=int(threshold),
+                level_scale=level_scale, level_exponent=level_exponent,
+                subgrid_resolutions=subgrid_resolutions, rule_max_axis=int(rule_max_axis))
+        except (OverflowError, MemoryError) as exc:
+            raise ValueError(f"cannot build the grid: {exc}") from None
+        return cls(scene, cap, options)
+
+    @classmethod
+    def uniform(cls, scene: Scene, resolution, intersector: str = "watertight", mailbox: bool = False,
+                insertion: str = "exact", memory_limit: int | None = None) -> "Grid":
+        """A uniform grid of ``resolution = (nx, ny, nz)`` cells over the scene's grid box.
+
+        ``insertion='exact'`` stores a triangle in the cells it overlaps (separating
+        axis test); ``'bounds'`` in every cell its bounding box overlaps.  A
+        resolution that overflows 32-bit cell offsets or passes ``memory_limit``
+        (bytes; default 8 GiB) raises ``ValueError``.
+        """
+        scales, exps = manta_rule(1)
+        return cls._build(scene, resolution, intersector=intersector, mailbox=mailbox, insertion=insertion,
+                          levels=1, threshold=DEFAULT_SUBDIVIDE_THRESHOLD, level_scale=scales,
+                          level_exponent=exps, subgrid_resolutions=None,
+                          rule_max_axis=DEFAULT_RULE_MAX_AXIS, memory_limit=memory_limit)
+
+    @classmethod
+    def nested(cls, scene: Scene, levels: int = 2, resolution=None, *, scale: float = MANTA_SCALE,
+               exponents=None, threshold: int = DEFAULT_SUBDIVIDE_THRESHOLD, subgrid_resolutions=None,
+               rule_max_axis: int = DEFAULT_RULE_MAX_AXIS, intersector: str = "watertight",
+               mailbox: bool = False, insertion: str = "exact", memory_limit: int | None = None) -> "Grid":
+        """A nested grid of ``levels`` levels (1 = uniform).
+
+        The top level has ``resolution`` (default: the rule applied to all N
+        triangles).  Below it, a cell with more than ``threshold`` references
+        gets a subgrid over that cell with total cells (scale * n)^exponent,
+        where n is the cell's reference count and exponent defaults to Manta's
+        3 / (2L + 1 - 2 depth); or, at depth 1, the explicit per-cell
+        ``subgrid_resolutions`` ((nx*ny*nz, 3) int, x fastest; a row of zeros
+        means no subgrid), deeper levels following the rule.
+        """
+        if not isinstance(levels, (int, np.integer)) or not 1 <= levels <= MAX_LEVELS:
+            raise ValueError(f"levels must be a whole number from 1 to {MAX_LEVELS}, got {levels!r}")
+        if not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale > 0):
+            raise ValueError(f"scale must be a positive number, got {scale!r}")
+        if not isinstance(threshold, (int, np.integer)) or threshold < 0:
+            raise ValueError(f"threshold must be a whole number >= 0, got {threshold!r}")
+        scales, exps = manta_rule(int(levels), scale)
+        if exponents is not None:
+            exponents = [float(e) for e in exponents]
+            if len(exponents) != levels or not all(math.isfinite(e) and e > 0 for e in exponents):
+                raise ValueError(f"exponents needs {levels} positive numbers, one per level")
+            exps[:levels] = exponents
+        if not isinstance(scene, Scene):
+            raise ValueError(f"scene must be a calibrate.Scene, got {type(scene).__name__}")
+        if resolution is None:
+            total = (scales[0] * scene.n_triangles) ** exps[0]
+            resolution = resolution_for_cells(total, scene.box_hi - scene.box_lo)
+        res = _check_resolution(resolution)
+        sub = None
+        if subgrid_resolutions is not None:
+            sub = np.asarray(subgrid_resolutions)
+            ncell = res[0] * res[1] * res[2]
+            if sub.shape != (ncell, 3) or not np.issubdtype(sub.dtype, np.integer):
+                raise ValueError(f"subgrid_resolutions must be whole numbers of shape ({ncell}, 3), one row per "
+                                 f"top-level cell, got {sub.shape} {sub.dtype}")
+            if sub.min(initial=0) < 0 or sub.max(initial=0) > 2**31 - 1:
+                raise ValueError("subgrid_resolutions must be between 0 (no subgrid) and 2^31 - 1")
+            partial = (sub == 0).any(axis=1) & (sub != 0).any(axis=1)
+            if partial.any():
+                raise ValueError(f"subgrid_resolutions row {int(np.argmax(partial))} mixes zero and non-zero axes")
+            sub = np.ascontiguousarray(sub, dtype=np.int32)
+            if levels < 2:
+                raise ValueError("subgrid_resolutions needs levels >= 2")
+        return cls._build(scene, res, intersector=intersector, mailbox=mailbox, insertion=insertion,
+                          levels=int(levels), threshold=int(threshold), level_scale=scales,
+                          level_exponent=exps, subgrid_resolutions=sub, rule_max_axis=rule_max_axis,
+                          memory_limit=memory_limit)
+
+    # -- properties ---------------------------------------------------------------
+    @property
+    def info(self) -> dict:
+        """Cells, references, empty cells, memory (bytes), levels, resolution, box."""
+        return dict(self._info)
+
+    @property
+    def resolution(self) -> tuple[int, int, int]:
+        return tuple(self._info["resolution"])
+
+    def top_counts(self) -> np.ndarray:
+        """(nz, ny, nx) int64: references per top-level cell (whole subtree for a subgrid)."""
+        return _kernels.top_counts(self._capsule)
+
+    def __repr__(self) -> str:
+        i = self._info
+        return (f"Grid({self.scene.name!r}, {i['resolution'][0]}x{i['resolution'][1]}x{i['resolution'][2]}, "
+                f"levels={i['levels']}, cells={i['n_cells']}, refs={i['n_refs']})")
+
+    # -- tracing ------------------------------------------------------------------
+    def intersect(self, origins, directions) -> tuple[np.ndarray, np.ndarray]:
+        """First hits with the timed twin.
+
+        Parameters
+        ----------
+        origins, directions : (n, 3) float64
+            Rays; directions need not be unit length (t is in their units).
+
+        Returns
+        -------
+        t : (n,) float64, +inf on a miss;  prim : (n,) int32, -1 on a miss.
+        Hits count for t > 0.
+        """
+        o, d = _check_rays(origins, directions)
+        return _kernels.intersect(self._capsule, o, d)
+
+    def count(self, origins, directions, hits: bool = False):
+        """Per-ray work from the instrumented twin.
+
+        Returns ``(steps, tests, subgrids)``, each (n,) uint32: cells visited at
+        every level, triangle tests, subgrids entered.  With ``hits=True``,
+        returns ``(t, prim, steps, tests, subgrids)``: the same hits as
+        :meth:`intersect`.
+        """
+        o, d = _check_rays(origins, directions)
+        t, prim, steps, tests, subgrids = _kernels.count(self._capsule, o, d)
+        if hits:
+            return t, prim, steps, tests, subgrids
+        return steps, tests, subgrids
+
+    def bench(self, origins, directions, loops: int = 1) -> tuple[int, float]:
+        """Trace the batch ``loops`` times in C; returns (elapsed ns, checksum)."""
+        o, d = _check_rays(origins, directions)
+        if not isinstance(loops, (int, np.integer)) or loops < 1:
+            raise ValueError(f"loops must be a whole number >= 1, got {loops!r}")
+        return _kernels.bench(self._capsule, o, d, int(loops))
+
+    def timed_batch(self, origins, directions):
+        """A ``run(loops) -> (elapsed_ns, checksum)`` callable for :func:`calibrate.protocol.measure`."""
+        o, d = _check_rays(origins, directions)
+        cap = self._capsule
+
+        def run(loops: int):
+            return _kernels.bench(cap, o, d, int(loops))
+
+        return run
+
+
+def brute_force(scene: Scene, origins, directions, intersector: str = "watertight"):
+    """Reference first hits: every ray against every triangle.  Returns (t, prim) like Grid.intersect."""
+    o, d = _check_rays(origins, directions)
+    return _kernels.brute_force(scene.vertices, scene.faces, intersector_code(intersector), o, d)
+
+
+def empty_grid(box_lo, box_hi, resolution, intersector: str = "watertight") -> Grid:
+    """A grid with no triangles over a box: times set-up and stepping alone (T_setup, T_step)."""
+    res = _check_resolution(resolution)
+    lo = np.asarray(box_lo, dtype=np.float64)
+    hi = np.asarray(box_hi, dtype=np.float64)
+    scene = Scene.__new__(Scene)
+    scene.vertices = np.zeros((1, 3))
+    scene.faces = np.zeros((0, 3), dtype=np.int64)
+    scene.name = "empty"
+    scene.box_lo, scene.box_hi = lo, hi
+    scene._stats = None
+    cap = _kernels.build(scene.vertices, scene.faces, res, intersector=intersector_code(intersector),
+                         box=list(lo) + list(hi))
+    return Grid(scene, cap, dict(resolution=res, intersector=intersector, mailbox=False, insertion="exact",
+                                 levels=1, threshold=DEFAULT_SUBDIVIDE_THRESHOLD))
