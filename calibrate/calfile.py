@@ -1,0 +1,487 @@
+"""The calibration file, ``calibration.json``: schema, validation, atomic save, re-fit.
+
+Schema (version :data:`SCHEMA_VERSION`), one JSON object::
+
+    {
+      "schema_version": 1,
+      "fingerprint":  {...},            # free-form host facts (calibrate.host.fingerprint)
+      "constants": {                    # the in-context fit, used for predictions
+        "t_setup_ns": {"median": m, "ci68": [lo, hi], "ci95": [lo, hi]},
+        "t_step_ns":  {...},
+        "t_int_ns":   {...},
+        "t_sub_ns":   {...} or null,    # null when no measurement entered a subgrid
+        "ratio":      {...}             # r = T_int / T_step, dimensionless
+      },
+      "isolated": {"t_step_ns": {"median": m, "ci95": [lo, hi]}, ...},
+                                        # isolating microbenchmarks; may be partial or {}
+      "samples": {"columns": ["t_setup_ns", ..., "extra_scatter"],
+                  "values": [[...], ...]},   # thinned posterior, (S, C), ns (scatter: log units)
+      "diagnostics": {...},             # acceptance, tau_steps, n_steps, converged, ...
+      "measurements": [                 # every raw measurement
+        {"kind": "isolated" | "in_context", "scene": str, "resolution": int | [..] | null,
+         "intersector": str | null, "rays": int, "steps": int, "tests": int,
+         "subgrids": int, "values_ns": [ns per batch, ...], ...extra keys kept}
+      ],
+      "meta": {...}                     # free-form (tool version, budget, wall time, ...)
+    }
+
+Constants are in ns per unit (ray, cell step, triangle test, subgrid entry).
+:func:`load` validates everything and raises :class:`calibrate._io.UserError`
+(a ``ValueError``) whose message names the file and the offending key.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from . import fit as _fit
+from ._io import UserError, atomic_write_text
+
+__all__ = [
+    "SCHEMA_VERSION",
+    "MEASUREMENT_KINDS",
+    "SAMPLE_COLUMNS",
+    "constants_json",
+    "design_from_measurements",
+    "dumps",
+    "from_fit",
+    "load",
+    "loads",
+    "refit",
+    "samples_by_name",
+    "save",
+    "validate",
+]
+
+SCHEMA_VERSION = 1
+MEASUREMENT_KINDS = ("isolated", "in_context")
+CONSTANT_KEYS = _fit.CONSTANT_NAMES + (_fit.RATIO_NAME,)
+# Constants a calibration must carry (t_sub_ns may be null or absent).
+REQUIRED_CONSTANTS = ("t_setup_ns", "t_step_ns", "t_int_ns", _fit.RATIO_NAME)
+SCATTER_COLUMN = "extra_scatter"
+SAMPLE_COLUMNS = _fit.CONSTANT_NAMES + (SCATTER_COLUMN,)
+REQUIRED_TOP_KEYS = ("schema_version", "fingerprint", "constants", "samples", "diagnostics", "measurements")
+# Posterior samples stored in the file at most (evenly thinned beyond this):
+# the 2.5th percentile of 2000 draws has a standard error of
+# sqrt(0.025 * 0.975 / 2000) = 0.35 percentile points, ample for intervals.
+MAX_STORED_SAMPLES = 2000
+# Count fields of a measurement (batch totals); subgrids may be omitted (= 0).
+COUNT_FIELDS = ("rays", "steps", "tests", "subgrids")
+
+
+# ---------------------------------------------------------------------------
+# Validation
+# ---------------------------------------------------------------------------
+
+
+def _fail(where: str, what: str):
+    raise UserError(f"{where}: {what}" if where else what)
+
+
+def _is_number(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
+def _finite(x, where: str) -> float:
+    if not _is_number(x):
+        _fail(where, f"must be a number, got {type(x).__name__}")
+    if not math.isfinite(x):
+        _fail(where, f"must be finite, got {x}")
+    return float(x)
+
+
+def _object(x, where: str) -> Mapping:
+    if not isinstance(x, dict):
+        _fail(where, f"must be a JSON object, got {_json_type(x)}")
+    return x
+
+
+def _json_type(x) -> str:
+    if x is None:
+        return "null"
+    if isinstance(x, bool):
+        return "boolean"
+    if isinstance(x, dict):
+        return "object"
+    if isinstance(x, list):
+        return "array"
+    if isinstance(x, str):
+        return "string"
+    if _is_number(x):
+        return "number"
+    return type(x).__name__
+
+
+def _interval(x, where: str, median: float | None) -> tuple[float, float]:
+    if not isinstance(x, list) or len(x) != 2:
+        _fail(where, "must be a [low, high] pair")
+    lo = _finite(x[0], f"{where}[0]")
+    hi = _finite(x[1], f"{where}[1]")
+    if lo > hi:
+        _fail(where, f"low {lo:g} is above high {hi:g}")
+    if lo < 0:
+        _fail(where, f"negative bound {lo:g}; constants are positive")
+    if median is not None and not (lo <= median <= hi):
+        _fail(where, f"interval [{lo:g}, {hi:g}] does not contain the median {median:g}")
+    return lo, hi
+
+
+def _estimate(x, where: str, *, require_intervals: bool) -> None:
+    obj = _object(x, where)
+    if "median" not in obj:
+        _fail(where, "missing key 'median'")
+    med = _finite(obj["median"], f"{where}.median")
+    if med <= 0:
+        _fail(f"{where}.median", f"must be positive, got {med:g}")
+    found = {}
+    for key in ("ci68", "ci95"):
+        if key in obj:
+            found[key] = _interval(obj[key], f"{where}.{key}", med)
+        elif require_intervals:
+            _fail(where, f"missing key {key!r}")
+    if "ci68" in found and "ci95" in found:
+        (lo68, hi68), (lo95, hi95) = found["ci68"], found["ci95"]
+        if lo95 > lo68 or hi95 < hi68:
+            _fail(where, "ci95 does not contain ci68")
+
+
+def _validate_constants(x, where: str, *, partial: bool) -> None:
+    obj = _object(x, where)
+    for key in obj:
+        if key not in CONSTANT_KEYS:
+            _fail(where, f"unknown constant {key!r} (known: {', '.join(CONSTANT_KEYS)})")
+    if not partial:
+        for key in REQUIRED_CONSTANTS:
+            if key not in obj:
+                _fail(where, f"missing key {key!r}")
+            if obj[key] is None:
+                _fail(f"{where}.{key}", "must not be null")
+    for key, val in obj.items():
+        if val is None:
+            continue
+        _estimate(val, f"{where}.{key}", require_intervals=not partial)
+
+
+def _validate_samples(x, where: str, constants: Mapping) -> None:
+    obj = _object(x, where)
+    for key in ("columns", "values"):
+        if key not in obj:
+            _fail(where, f"missing key {key!r}")
+    cols = obj["columns"]
+    if not isinstance(cols, list) or not all(isinstance(c, str) for c in cols):
+        _fail(f"{where}.columns", "must be an array of strings")
+    if len(set(cols)) != len(cols):
+        _fail(f"{where}.columns", "has duplicate names")
+    for c in cols:
+        if c not in SAMPLE_COLUMNS:
+            _fail(f"{where}.columns", f"unknown column {c!r} (known: {', '.join(SAMPLE_COLUMNS)})")
+    for key in ("t_setup_ns", "t_step_ns", "t_int_ns"):
+        if key not in cols:
+            _fail(f"{where}.columns", f"missing column {key!r}")
+    if constants.get("t_sub_ns") is not None and "t_sub_ns" not in cols:
+        _fail(f"{where}.columns", "missing column 't_sub_ns' although constants.t_sub_ns is set")
+    values = obj["values"]
+    if not isinstance(values, list) or not values:
+        _fail(f"{where}.values", "must be a non-empty array of rows")
+    n_cols = len(cols)
+    arr = np.empty((len(values), n_cols))
+    for i, row in enumerate(values):
+        if not isinstance(row, list):
+            _fail(f"{where}.values[{i}]", f"must be an array, got {_json_type(row)}")
+        if len(row) != n_cols:
+            _fail(
+                f"{where}.values",
+                f"shape mismatch: row {i} has {len(row)} values but there are {n_cols} columns",
+            )
+        for k, v in enumerate(row):
+            arr[i, k] = _finite(v, f"{where}.values[{i}][{k}]")
+    for k, c in enumerate(cols):
+        bad = arr[:, k] < 0 if c == SCATTER_COLUMN else arr[:, k] <= 0
+        if np.any(bad):
+            i = int(np.flatnonzero(bad)[0])
+            _fail(f"{where}.values[{i}][{k}]", f"{c} must be {'>= 0' if c == SCATTER_COLUMN else 'positive'}")
+
+
+def _validate_resolution(x, where: str, depth: int = 0) -> None:
+    if x is None or isinstance(x, str):
+        return
+    if _is_number(x):
+        if not (float(x).is_integer() and x >= 1):
+            _fail(where, f"must be a positive integer, got {x}")
+        return
+    if isinstance(x, list) and depth < 2 and x:
+        for i, v in enumerate(x):
+            _validate_resolution(v, f"{where}[{i}]", depth + 1)
+        return
+    _fail(where, "must be a positive integer, a non-empty array of them (per axis or per level), a string or null")
+
+
+def _validate_measurement(m, where: str) -> None:
+    obj = _object(m, where)
+    for key in ("kind", "scene", "resolution", "intersector", "rays", "steps", "tests", "values_ns"):
+        if key not in obj:
+            _fail(where, f"missing key {key!r}")
+    if obj["kind"] not in MEASUREMENT_KINDS:
+        _fail(f"{where}.kind", f"must be one of {', '.join(MEASUREMENT_KINDS)}, got {obj['kind']!r}")
+    if not isinstance(obj["scene"], str):
+        _fail(f"{where}.scene", f"must be a string, got {_json_type(obj['scene'])}")
+    if obj["intersector"] is not None and not isinstance(obj["intersector"], str):
+        _fail(f"{where}.intersector", f"must be a string or null, got {_json_type(obj['intersector'])}")
+    _validate_resolution(obj["resolution"], f"{where}.resolution")
+    for key in COUNT_FIELDS:
+        if key not in obj:
+            continue
+        v = _finite(obj[key], f"{where}.{key}")
+        if v < 0:
+            _fail(f"{where}.{key}", f"negative count {v:g}")
+        if not v.is_integer():
+            _fail(f"{where}.{key}", f"count must be a whole number, got {v:g}")
+    if obj["rays"] < 1:
+        _fail(f"{where}.rays", "a batch must trace at least one ray")
+    vals = obj["values_ns"]
+    if not isinstance(vals, list):
+        _fail(f"{where}.values_ns", f"must be an array of times in ns, got {_json_type(vals)}")
+    for i, v in enumerate(vals):
+        if _finite(v, f"{where}.values_ns[{i}]") < 0:
+            _fail(f"{where}.values_ns[{i}]", f"negative time {v:g}")
+
+
+def validate(cal: Any) -> dict:
+    """Check a calibration object against the schema; return it unchanged.
+
+    Raises UserError (a ValueError) naming the offending key, e.g.
+    ``constants.t_step_ns.ci95: interval [..] does not contain the median ..``.
+    """
+    if not isinstance(cal, dict):
+        _fail("", f"a calibration must be a JSON object, got {_json_type(cal)}")
+    for key in REQUIRED_TOP_KEYS:
+        if key not in cal:
+            _fail("", f"missing key {key!r}")
+    ver = cal["schema_version"]
+    if not isinstance(ver, int) or isinstance(ver, bool):
+        _fail("schema_version", f"must be an integer, got {_json_type(ver)}")
+    if ver > SCHEMA_VERSION:
+        _fail(
+            "schema_version",
+            f"{ver} is newer than this gridcal understands ({SCHEMA_VERSION}); upgrade gridcal",
+        )
+    if ver < 1:
+        _fail("schema_version", f"must be >= 1, got {ver}")
+    _object(cal["fingerprint"], "fingerprint")
+    _validate_constants(cal["constants"], "constants", partial=False)
+    _validate_constants(cal.get("isolated", {}), "isolated", partial=True)
+    _validate_samples(cal["samples"], "samples", cal["constants"])
+    diag = _object(cal["diagnostics"], "diagnostics")
+    if "converged" in diag and diag["converged"] is not True:
+        _fail("diagnostics.converged", "is not true: the posterior did not converge, so the constants are not a result")
+    meas = cal["measurements"]
+    if not isinstance(meas, list):
+        _fail("measurements", f"must be an array, got {_json_type(meas)}")
+    for i, m in enumerate(meas):
+        _validate_measurement(m, f"measurements[{i}]")
+    _object(cal.get("meta", {}), "meta")
+    return cal
+
+
+# ---------------------------------------------------------------------------
+# Reading and writing
+# ---------------------------------------------------------------------------
+
+
+def _reject_constant(name: str):
+    raise UserError(f"contains {name}, which is not valid JSON; numbers must be finite")
+
+
+def loads(text: str, source: str = "calibration") -> dict:
+    """Parse and validate calibration JSON text; ``source`` prefixes messages."""
+    try:
+        obj = json.loads(text, parse_constant=_reject_constant)
+    except UserError as exc:
+        raise UserError(f"{source}: {exc}") from None
+    except json.JSONDecodeError as exc:
+        raise UserError(
+            f"{source}: not valid JSON at line {exc.lineno} column {exc.colno} ({exc.msg}); "
+            "the file may be truncated or corrupted"
+        ) from None
+    try:
+        return validate(obj)
+    except UserError as exc:
+        raise UserError(f"{source}: {exc}") from None
+
+
+def dumps(cal: Mapping) -> str:
+    """Validate and serialise a calibration to JSON text (no NaN, UTF-8 safe)."""
+    cal = _plain(cal)
+    validate(cal)
+    return json.dumps(cal, indent=1, allow_nan=False, ensure_ascii=False) + "\n"
+
+
+def save(path, cal: Mapping) -> Path:
+    """Validate ``cal`` and write it to ``path`` atomically; return the path."""
+    return atomic_write_text(path, dumps(cal))
+
+
+def load(path) -> dict:
+    """Read and validate a calibration file.
+
+    Raises UserError (a ValueError) naming the file and what is wrong: missing
+    file, not UTF-8, invalid or truncated JSON, schema violations.
+    """
+    p = Path(path)
+    try:
+        data = p.read_bytes()
+    except FileNotFoundError:
+        raise UserError(f"{p}: no such calibration file; run `calibrate run` to create one") from None
+    except IsADirectoryError:
+        raise UserError(f"{p}: is a directory, not a calibration file") from None
+    except OSError as exc:
+        raise UserError(f"{p}: cannot read ({exc.strerror or exc})") from None
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise UserError(f"{p}: not UTF-8 text (byte {exc.start}); not a calibration file") from None
+    return loads(text, source=str(p))
+
+
+def _plain(x):
+    """Convert numpy scalars/arrays and tuples to plain JSON types."""
+    if isinstance(x, Mapping):
+        return {str(k): _plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_plain(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return [_plain(v) for v in x.tolist()]
+    if isinstance(x, np.bool_):
+        return bool(x)
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, np.floating):
+        return float(x)
+    return x
+
+
+# ---------------------------------------------------------------------------
+# Building and re-fitting
+# ---------------------------------------------------------------------------
+
+
+def _stored_samples(result: _fit.FitResult) -> dict:
+    values = np.column_stack([result.samples, result.tau_samples])
+    n = values.shape[0]
+    if n > MAX_STORED_SAMPLES:
+        idx = np.round(np.linspace(0, n - 1, MAX_STORED_SAMPLES)).astype(int)
+        values = values[idx]
+    return {"columns": list(result.names) + [SCATTER_COLUMN], "values": values.tolist()}
+
+
+def constants_json(result: _fit.FitResult) -> dict:
+    """A fit's constants as the file stores them: name -> {median, ci68, ci95} or None.
+
+    Also the form of ``isolated``: a fit of an isolating suite (``fit(...,
+    required=("rays", "steps"))``) gives a partial block with None entries.
+    """
+    return {
+        name: None if est is None else {"median": est["median"], "ci68": list(est["ci68"]), "ci95": list(est["ci95"])}
+        for name, est in result.constants.items()
+    }
+
+
+def from_fit(
+    result: _fit.FitResult,
+    *,
+    fingerprint: Mapping,
+    measurements: list,
+    isolated: Mapping | None = None,
+    meta: Mapping | None = None,
+) -> dict:
+    """Assemble a calibration object from a fit and the raw measurements.
+
+    result : FitResult of the in-context measurements.
+    fingerprint : host facts (free-form JSON object).
+    measurements : list of measurement records (see the module docstring).
+    isolated : partial constants from isolating microbenchmarks ({} if none).
+    Returns a validated, JSON-ready dict.
+    """
+    cal = {
+        "schema_version": SCHEMA_VERSION,
+        "fingerprint": dict(fingerprint),
+        "constants": constants_json(result),
+        "isolated": dict(isolated or {}),
+        "samples": _stored_samples(result),
+        "diagnostics": dict(result.diagnostics),
+        "measurements": list(measurements),
+        "meta": dict(meta or {}),
+    }
+    cal = _plain(cal)
+    return validate(cal)
+
+
+def samples_by_name(cal: Mapping) -> dict[str, np.ndarray]:
+    """Posterior samples of a (validated) calibration as name -> (S,) float arrays.
+
+    Names are the stored columns (``t_setup_ns`` ... in ns, ``extra_scatter``
+    in log units) plus ``ratio`` = T_int / T_step.
+    """
+    cols = cal["samples"]["columns"]
+    values = np.asarray(cal["samples"]["values"], dtype=float).reshape(-1, len(cols))
+    out = {name: values[:, k].copy() for k, name in enumerate(cols)}
+    out[_fit.RATIO_NAME] = out["t_int_ns"] / out["t_step_ns"]
+    return out
+
+
+def design_from_measurements(
+    measurements: list,
+    kind: str = "in_context",
+    intersector: str | None = None,
+) -> dict:
+    """Gather measurements of one kind into a design for :func:`calibrate.fit.fit`.
+
+    measurements : validated measurement records.
+    kind : "in_context" (the exported fit) or "isolated".
+    intersector : keep only this intersector; when None all selected records
+        must share one (records with intersector null are always kept).
+    Records without values (an interrupted series) are skipped.
+    Returns {rays, steps, tests, subgrids: (J,) float arrays, times_ns: J lists}.
+    """
+    if kind not in MEASUREMENT_KINDS:
+        raise UserError(f"kind must be one of {', '.join(MEASUREMENT_KINDS)}, got {kind!r}")
+    chosen = [m for m in measurements if m["kind"] == kind and m["values_ns"]]
+    if intersector is not None:
+        chosen = [m for m in chosen if m["intersector"] in (None, intersector)]
+    names = sorted({m["intersector"] for m in chosen if m["intersector"] is not None})
+    if len(names) > 1:
+        raise UserError(
+            f"{kind} measurements mix intersectors ({', '.join(names)}), which have different T_int; "
+            "choose one"
+        )
+    if not chosen:
+        which = f" for intersector {intersector!r}" if intersector else ""
+        raise UserError(f"no {kind} measurements with values{which}: nothing to fit")
+    design = {k: np.array([float(m.get(k, 0)) for m in chosen]) for k in COUNT_FIELDS}
+    design["times_ns"] = [list(map(float, m["values_ns"])) for m in chosen]
+    return design
+
+
+def refit(cal: Mapping, *, seed: int = 0, intersector: str | None = None, **fit_kwargs) -> dict:
+    """Re-fit the constants from a calibration's stored in-context measurements.
+
+    Returns a new validated calibration: ``constants``, ``samples`` and
+    ``diagnostics`` replaced, everything else kept. ``fit_kwargs`` go to
+    :func:`calibrate.fit.fit` (e.g. ``max_steps``). Raises ValueError when the
+    measurements cannot be fitted (see fit.fit).
+    """
+    cal = validate(_plain(cal))
+    design = design_from_measurements(cal["measurements"], "in_context", intersector)
+    result = _fit.fit(design, seed=seed, **fit_kwargs)
+    return from_fit(
+        result,
+        fingerprint=cal["fingerprint"],
+        measurements=cal["measurements"],
+        isolated=cal.get("isolated", {}),
+        meta=cal.get("meta", {}),
+    )
