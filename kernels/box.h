@@ -9,8 +9,16 @@
 
 #include "gc_internal.h"
 
+/* Each slab's [t_near, t_far] is widened by this many ulps of its values, so
+ * a ray that grazes the box along an edge or through a corner, where rounding
+ * can make one slab's exit fall a hair before another's entry, still enters
+ * (pbrt widens t_far by 1 + 2 gamma(3) for the same reason). */
+#define GC_SLAB_WIDEN (4.0 * 2.220446049250313e-16)
+
 /* Clip the ray's interval [*t0, *t1] to the box [lo, hi].  Returns 1 if a
- * non-empty interval remains (a ray touching the box in one point counts). */
+ * non-empty interval remains (a ray touching the box in one point counts).
+ * A ray parallel to a slab counts as inside it within a few ulps of the
+ * slab's planes, for the same reason. */
 GC_INLINE int gc_ray_box_clip(const gc_ray *r, const double lo[3], const double hi[3],
                               double *t0, double *t1)
 {
@@ -18,7 +26,8 @@ GC_INLINE int gc_ray_box_clip(const gc_ray *r, const double lo[3], const double 
     for (int i = 0; i < 3; ++i) {
         if (r->d[i] == 0.0) {
             /* parallel to the slab: inside it for every t, or never */
-            if (!(r->o[i] >= lo[i] && r->o[i] <= hi[i])) {
+            const double pad = GC_SLAB_WIDEN * fmax(fabs(lo[i]), fabs(hi[i]));
+            if (!(r->o[i] >= lo[i] - pad && r->o[i] <= hi[i] + pad)) {
                 return 0;
             }
             continue;
@@ -30,6 +39,8 @@ GC_INLINE int gc_ray_box_clip(const gc_ray *r, const double lo[3], const double 
             tn = tf;
             tf = tmp;
         }
+        tn -= GC_SLAB_WIDEN * fabs(tn);
+        tf += GC_SLAB_WIDEN * fabs(tf);
         if (tn > ta) {
             ta = tn;
         }

@@ -41,7 +41,8 @@ typedef struct {
 static uint64_t grid_bytes(const builder *b)
 {
     const gc_grid *g = b->g;
-    return (uint64_t)g->n_tris * sizeof(gc_tri) + (uint64_t)b->cap_nodes * sizeof(gc_node) +
+    return (uint64_t)g->n_tris * (sizeof(gc_tri) + sizeof(int32_t)) +
+           (uint64_t)b->cap_nodes * sizeof(gc_node) +
            (uint64_t)b->cap_cells * sizeof(gc_cell) + (uint64_t)b->cap_refs * sizeof(uint32_t);
 }
 
@@ -400,6 +401,83 @@ static gc_status build_node(builder *b, const uint32_t *prims, int64_t n_prims, 
     return st;
 }
 
+/* Spread the low 21 bits of x to every third bit (Morton encoding). */
+static uint64_t spread_bits(uint64_t x)
+{
+    x &= 0x1fffff;
+    x = (x | x << 32) & 0x1f00000000ffffull;
+    x = (x | x << 16) & 0x1f0000ff0000ffull;
+    x = (x | x << 8) & 0x100f00f00f00f00full;
+    x = (x | x << 4) & 0x10c30c30c30c30c3ull;
+    x = (x | x << 2) & 0x1249249249249249ull;
+    return x;
+}
+
+typedef struct {
+    uint64_t key;
+    uint32_t index;
+    uint32_t pad;
+} keyed;
+
+/* The mesh's faces in Morton order of their centroids within [lo, hi], by an
+ * LSD radix sort (stable, so equal codes keep the mesh's order).  order
+ * receives n face indices. */
+static gc_status morton_order(builder *b, const gc_mesh *mesh, const double lo[3], const double hi[3],
+                              uint32_t *order)
+{
+    const int64_t n = mesh->n_faces;
+    size_t bytes = (size_t)(n > 0 ? n : 1) * sizeof(keyed);
+    gc_status st;
+    keyed *a = scratch_alloc(b, bytes, "the triangle order", &st);
+    keyed *tmp = a ? scratch_alloc(b, bytes, "the triangle order", &st) : NULL;
+    if (!tmp) {
+        if (a) {
+            scratch_free(b, a, bytes);
+        }
+        return st;
+    }
+    const double scale = (double)(1u << 21) - 1.0;
+    for (int64_t f = 0; f < n; ++f) {
+        uint64_t q[3];
+        for (int i = 0; i < 3; ++i) {
+            double c = (mesh->vertices[3 * mesh->faces[3 * f] + i] + mesh->vertices[3 * mesh->faces[3 * f + 1] + i] +
+                        mesh->vertices[3 * mesh->faces[3 * f + 2] + i]) /
+                       3.0;
+            double u = (c - lo[i]) / (hi[i] - lo[i]) * scale;
+            u = u > 0.0 ? (u < scale ? u : scale) : 0.0;
+            q[i] = (uint64_t)u;
+        }
+        a[f].key = spread_bits(q[0]) | spread_bits(q[1]) << 1 | spread_bits(q[2]) << 2;
+        a[f].index = (uint32_t)f;
+        a[f].pad = 0;
+    }
+    enum { DIGIT_BITS = 11, BUCKETS = 1 << DIGIT_BITS, PASSES = 6 }; /* 66 >= 63 key bits */
+    static const int digit_mask = BUCKETS - 1;
+    for (int pass = 0; pass < PASSES; ++pass) {
+        int64_t count[BUCKETS + 1];
+        memset(count, 0, sizeof count);
+        const int shift = pass * DIGIT_BITS;
+        for (int64_t k = 0; k < n; ++k) {
+            count[((a[k].key >> shift) & (uint64_t)digit_mask) + 1]++;
+        }
+        for (int d = 0; d < BUCKETS; ++d) {
+            count[d + 1] += count[d];
+        }
+        for (int64_t k = 0; k < n; ++k) {
+            tmp[count[(a[k].key >> shift) & (uint64_t)digit_mask]++] = a[k];
+        }
+        keyed *sw = a;
+        a = tmp;
+        tmp = sw;
+    }
+    for (int64_t k = 0; k < n; ++k) {
+        order[k] = a[k].index;
+    }
+    scratch_free(b, a, bytes);
+    scratch_free(b, tmp, bytes);
+    return GC_OK;
+}
+
 static gc_status check_params(const gc_build_params *p, char *err)
 {
     if (p->intersector != GC_MOLLER_TRUMBORE && p->intersector != GC_WATERTIGHT) {
@@ -490,27 +568,34 @@ gc_status gc_grid_build(const gc_mesh *mesh, const gc_build_params *params, gc_g
     uint32_t *prims = NULL;
     size_t prims_bytes = (size_t)(g->n_tris > 0 ? g->n_tris : 1) * sizeof(uint32_t);
     if (st == GC_OK) {
-        st = check_memory(&b, (uint64_t)g->n_tris * sizeof(gc_tri), "the triangles");
+        st = check_memory(&b, 0, "the triangles"); /* grid_bytes counts them already */
     }
     if (st == GC_OK) {
-        g->tris = malloc((size_t)(g->n_tris > 0 ? g->n_tris : 1) * sizeof(gc_tri));
-        if (!g->tris) {
+        size_t n_alloc = (size_t)(g->n_tris > 0 ? g->n_tris : 1);
+        g->tris = malloc(n_alloc * sizeof(gc_tri));
+        g->tri_id = malloc(n_alloc * sizeof(int32_t));
+        if (!g->tris || !g->tri_id) {
             gc_set_error(err, "out of memory copying %lld triangles", (long long)g->n_tris);
             st = GC_ERR_NO_MEMORY;
         }
     }
     if (st == GC_OK) {
-        for (int64_t f = 0; f < g->n_tris; ++f) {
-            const int64_t *fv = mesh->faces + 3 * f;
-            memcpy(g->tris[f].v0, mesh->vertices + 3 * fv[0], 3 * sizeof(double));
-            memcpy(g->tris[f].v1, mesh->vertices + 3 * fv[1], 3 * sizeof(double));
-            memcpy(g->tris[f].v2, mesh->vertices + 3 * fv[2], 3 * sizeof(double));
-        }
         prims = scratch_alloc(&b, prims_bytes, "the triangle list", &st);
     }
     if (st == GC_OK) {
-        for (int64_t f = 0; f < g->n_tris; ++f) {
-            prims[f] = (uint32_t)f;
+        st = morton_order(&b, mesh, lo, hi, prims);
+        if (st != GC_OK) {
+            scratch_free(&b, prims, prims_bytes);
+        }
+    }
+    if (st == GC_OK) {
+        for (int64_t k = 0; k < g->n_tris; ++k) {
+            const int64_t *fv = mesh->faces + 3 * (int64_t)prims[k];
+            memcpy(g->tris[k].v0, mesh->vertices + 3 * fv[0], 3 * sizeof(double));
+            memcpy(g->tris[k].v1, mesh->vertices + 3 * fv[1], 3 * sizeof(double));
+            memcpy(g->tris[k].v2, mesh->vertices + 3 * fv[2], 3 * sizeof(double));
+            g->tri_id[k] = (int32_t)prims[k];
+            prims[k] = (uint32_t)k; /* the top level indexes the stored (sorted) triangles */
         }
         uint32_t top;
         st = build_node(&b, prims, g->n_tris, lo, hi, p.resolution, 0, &top);

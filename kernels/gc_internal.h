@@ -1,7 +1,9 @@
 /* gc_internal.h - data layout shared by the kernels' translation units.
  *
  * Not part of the public interface.  A grid is four flat arrays:
- *   tris  : the mesh's triangles, vertex positions copied per triangle (72 bytes each);
+ *   tris  : the mesh's triangles, vertex positions copied per triangle (72 bytes each),
+ *           sorted along a Morton curve so that the triangles of one cell share cache
+ *           lines (tri_id maps back to the mesh's face index);
  *   nodes : one per (sub)grid, node 0 is the top level;
  *   cells : every node's cells, node k owning [first_cell, first_cell + nx*ny*nz);
  *   refs  : triangle indices; a leaf cell owns refs[begin, begin + count).
@@ -47,7 +49,8 @@ _Static_assert(sizeof(gc_cell) == 8, "gc_cell is two 32-bit fields");
 _Static_assert(sizeof(gc_node) == 120, "gc_node layout");
 
 struct gc_grid {
-    gc_tri *tris;
+    gc_tri *tris;       /* in Morton order of their centroids: a cell's triangles lie close in memory */
+    int32_t *tri_id;    /* the mesh's face index of each stored triangle */
     int64_t n_tris;
     gc_node *nodes;
     int64_t n_nodes;

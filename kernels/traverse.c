@@ -98,21 +98,23 @@ static double trace_batch_timed(const gc_grid *g, int64_t n, const double *orig,
         for (int64_t k = 0; k < n; ++k) {
             gc_ray_prepare(&r, orig + 3 * k, dir + 3 * k);
             trace_timed_wt(g, &r, &h, mail);
+            const int32_t id = h.prim >= 0 ? g->tri_id[h.prim] : -1;
             if (t_out) {
                 t_out[k] = h.t;
-                prim_out[k] = h.prim;
+                prim_out[k] = id;
             }
-            sum += (h.prim >= 0) ? h.t + (double)h.prim : -1.0;
+            sum += (id >= 0) ? h.t + (double)id : -1.0;
         }
     } else {
         for (int64_t k = 0; k < n; ++k) {
             gc_ray_prepare(&r, orig + 3 * k, dir + 3 * k);
             trace_timed_mt(g, &r, &h, mail);
+            const int32_t id = h.prim >= 0 ? g->tri_id[h.prim] : -1;
             if (t_out) {
                 t_out[k] = h.t;
-                prim_out[k] = h.prim;
+                prim_out[k] = id;
             }
-            sum += (h.prim >= 0) ? h.t + (double)h.prim : -1.0;
+            sum += (id >= 0) ? h.t + (double)id : -1.0;
         }
     }
     return sum;
@@ -166,7 +168,7 @@ gc_status gc_count(const gc_grid *g, int64_t n, const double *origins, const dou
             t[k] = h.t;
         }
         if (prim) {
-            prim[k] = h.prim;
+            prim[k] = h.prim >= 0 ? g->tri_id[h.prim] : -1;
         }
         if (steps) {
             steps[k] = cnt.steps;

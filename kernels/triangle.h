@@ -1,14 +1,22 @@
 /* triangle.h - the two ray/triangle intersectors.
  *
  * Both return 1 and set *t_out when the ray meets the triangle at some
- * t in (0, t_max).  Neither uses an epsilon: a scale-dependent tolerance
- * would break scenes scaled by 1e-20 or 1e20.  A degenerate (zero-area)
- * triangle is never hit.
+ * t in (0, t_max).  Neither uses an absolute epsilon: a scale-dependent
+ * tolerance would break scenes scaled by 1e-20 or 1e20.  A degenerate
+ * (zero-area) triangle is never hit (see GC_DET_ULPS).
  */
 #ifndef GC_TRIANGLE_H
 #define GC_TRIANGLE_H
 
 #include "gc_internal.h"
+
+/* Rounding-error bound on a determinant, in units of the magnitudes of the
+ * products it sums (a few ulps: each product and sum rounds once).  A
+ * determinant at or below it is rounding noise: the triangle is degenerate
+ * (zero area) or the ray lies in its plane, and the test reports no hit
+ * rather than a t made of noise.  Relative, so scenes scaled by 1e-20 or
+ * 1e20 behave alike. */
+#define GC_DET_ULPS (8.0 * 2.220446049250313e-16)
 
 /* Moller and Trumbore, "Fast, minimum storage ray-triangle intersection",
  * JGT 2(1) 1997.  Not watertight: rays through shared edges or vertices can
@@ -22,7 +30,10 @@ GC_INLINE int gc_isect_moller_trumbore(const gc_ray *r, const gc_tri *tri, doubl
     double p[3] = {r->d[1] * e2[2] - r->d[2] * e2[1], r->d[2] * e2[0] - r->d[0] * e2[2],
                    r->d[0] * e2[1] - r->d[1] * e2[0]};
     double det = e1[0] * p[0] + e1[1] * p[1] + e1[2] * p[2];
-    if (det == 0.0 || !(det == det)) {
+    /* det = e1 . (d x e2): bound its rounding by the magnitudes of every product in it */
+    double mag = (fabs(e1[0]) + fabs(e1[1]) + fabs(e1[2])) * (fabs(r->d[0]) + fabs(r->d[1]) + fabs(r->d[2])) *
+                 (fabs(e2[0]) + fabs(e2[1]) + fabs(e2[2]));
+    if (!(fabs(det) > GC_DET_ULPS * mag)) {
         return 0;
     }
     double inv_det = 1.0 / det;
@@ -70,7 +81,8 @@ GC_INLINE int gc_isect_watertight(const gc_ray *r, const gc_tri *tri, double t_m
         return 0;
     }
     double det = u + v + w;
-    if (det == 0.0 || !(det == det)) {
+    double mag = fabs(cx * by) + fabs(cy * bx) + fabs(ax * cy) + fabs(ay * cx) + fabs(bx * ay) + fabs(by * ax);
+    if (!(fabs(det) > GC_DET_ULPS * mag)) {
         return 0;
     }
     double az = r->sz * a[kz], bz = r->sz * b[kz], cz = r->sz * c[kz];
