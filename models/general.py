@@ -1,0 +1,307 @@
+"""The general cost model (DESIGN §3.2): expected counts per ray from integral geometry.
+
+Setting: a grid box with extents ``d`` (3,), volume ``V``, surface ``S``; resolution
+``n = (nx, ny, nz)``; cell sizes ``c_i = d_i / n_i``; cell surface
+``S_c = 2 (cx cy + cy cz + cz cx)``.  Rays are isotropic uniform random lines that hit
+the box (the talk's "all rays hit the grid and are equally likely"), no termination.
+
+Crofton (Cauchy) formula: for convex ``K`` inside the box,
+``P(line hits K | line hits box) = S(K) / S``.
+
+Steps (cells visited per ray; exact)
+    ``steps = sum_cells S_c / S = nx ny nz S_c / S
+            = 2 (nz dx dy + nx dy dz + ny dz dx) / S``
+    (``= m`` for an m^3 grid of a cube; ``= 6 V / (S h)`` for cubic cells of side h).
+
+Tests without mailboxing (exact given the per-cell reference counts)
+    ``tests = sum_cells refs(c) S_c / S = R S_c / S``.
+
+Expected references ``R`` (average over the grid offset, exact for that average)
+    A triangle T overlaps the cell ``C + z`` iff the lattice point ``z`` lies in
+    ``T (+) (-C)``; with a uniformly random offset the expected count is
+    ``vol(T (+) C) / vol(C)``.  For the box ``C = sum_i [0, c_i] e_i`` (a sum of
+    orthogonal segments), adding one segment adds ``c_i`` times the measure of the
+    projection along ``e_i``, so for a planar T (zero volume):
+    ``vol(T (+) C) = sum_i c_i A|n_i| + sum_i c_j c_k ext_i + cx cy cz``
+    ((i, j, k) a cyclic permutation).  Dividing by ``cx cy cz``:
+    ``E[cells(T)] = 1 + sum_i ext_i / c_i + sum_i A|n_i| / (c_j c_k)``,
+    hence ``R = N + sum_i E1_i / c_i + sum_i E2_i / (c_j c_k)``
+    (cubic: ``N + E1/h + E2/h^2``).
+    A build that assigns by *bounding-box* overlap instead has
+    ``E[cells] = prod_i (1 + ext_i / c_i)``, i.e.
+    ``R_bbox = N + sum_i E1_i / c_i + sum_i B_jk / (c_j c_k) + B_xyz / (cx cy cz)``
+    with ``B_jk = sum ext_j ext_k`` and ``B_xyz = sum ext_x ext_y ext_z``.
+
+Tests with mailboxing (each triangle tested once per ray)
+    A ray tests T iff it meets the union U of T's cells.
+    - exact overlap: U is approximated by ``T (+) C`` (the DESIGN's "hull"); by the
+      mixed-volume identity ``S(K + L) = S(K) + S(L) + 6 V(K, L, B)`` and
+      ``V(T, segment c_i e_i, B) = c_i P_i(T) / 6`` (P_i the perimeter of T projected
+      along e_i), ``S(T (+) C) = 2A + sum_i c_i P_i + S_c``, so
+      ``tests_mb = (2 A_tot + sum_i c_i P_i + N S_c) / S``
+      (cubic: ``2A + h (Px+Py+Pz) + 6 h^2`` per triangle).  Approximate: U is a
+      polycube, not convex, and a line through ``T (+) C`` can miss U.
+    - bounding-box overlap: U is the box of the cell range, convex, with expected side
+      ``ext_i + c_i`` (independent per axis over the offset), so exactly
+      ``tests_mb = 2 sum_i (B_jk + c_j E1_k + c_k E1_j + N c_j c_k) / S``.
+
+Single-level optimum (cubic cells of side h, rays never terminate)
+    ``T(h) = T_setup + T_step 6V/(S h) + T_int 6 (N h^2 + E1 h + E2) / S`` is convex in
+    h > 0; ``dT/dh = 0`` is ``2 N r h^3 + E1 r h^2 - V = 0`` (r = T_int / T_step), whose
+    left side increases on h > 0 from ``-V``: one positive root, the minimum.  Every
+    variant above gives the same cubic ``a h^3 + b h^2 - c = 0`` with ``a = 2 N r`` and
+    (exact, no mailbox) ``b = r E1, c = V``; (exact, mailbox) ``b = r P / 6, c = V``;
+    (bbox, no mailbox) ``b = r E1, c = V + r B_xyz``; (bbox, mailbox) ``b = 2 r E1 / 3, c = V``.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+
+import numpy as np
+
+from .closed_forms import MAX_CELLS_PER_AXIS, MAX_TOTAL_CELLS, cells_to_resolution
+from .stats import SceneStats
+
+#: Newton iterations for the scaled cubic; from a start within a factor sqrt(2) of the
+#: root, Newton on this convex increasing function converges monotonically and
+#: quadratically, so 40 is far more than float64 needs (kept fixed for jax tracing).
+CUBIC_NEWTON_ITERATIONS = 40
+
+OVERLAP_MODES = ("exact", "bbox")
+
+
+@dataclass(frozen=True)
+class Terms:
+    """Which terms of the count model are switched on (see :mod:`models.effects`).
+
+    edge : the E1 / perimeter terms (triangles spanning cells along their extent).
+    area : the E2 / 2A / bbox-area terms (large triangles).
+    mailbox : tests counted once per ray per triangle.
+    traversed_fraction : fraction (0, 1] of the no-termination steps and tests a ray
+        performs (1.0 = rays never stop; :func:`models.effects.termination_fraction`).
+    """
+
+    edge: bool = True
+    area: bool = True
+    mailbox: bool = False
+    traversed_fraction: float = 1.0
+
+
+def _resolution(resolution) -> np.ndarray:
+    n = np.asarray(resolution)
+    if n.shape != (3,):
+        raise ValueError(f"resolution must be (nx, ny, nz), got shape {n.shape}")
+    if not np.all(np.isfinite(n)) or np.any(n < 1):
+        raise ValueError(f"resolution entries must be finite and >= 1, got {resolution!r}")
+    return n.astype(np.float64)
+
+
+def _check_overlap(overlap):
+    if overlap not in OVERLAP_MODES:
+        raise ValueError(f"overlap must be one of {OVERLAP_MODES}, got {overlap!r}")
+
+
+def cell_sizes(extent, resolution) -> np.ndarray:
+    """(3,) cell sizes ``d_i / n_i`` (scene units)."""
+    return np.asarray(extent, dtype=np.float64) / _resolution(resolution)
+
+
+def steps_per_ray(extent, resolution) -> float:
+    """Expected cells visited per isotropic line hitting the box: ``2 (nz dx dy + nx dy dz + ny dz dx) / S``."""
+    d = np.asarray(extent, dtype=np.float64)
+    n = _resolution(resolution)
+    s = 2.0 * (d[0] * d[1] + d[1] * d[2] + d[2] * d[0])
+    return float(2.0 * (n[2] * d[0] * d[1] + n[0] * d[1] * d[2] + n[1] * d[2] * d[0]) / s)
+
+
+def expected_refs(stats: SceneStats, resolution, *, overlap="exact", edge=True, area=True) -> float:
+    """Expected total cell references R (offset average) at this resolution.
+
+    ``exact``: ``N + sum_i E1_i/c_i + sum_i E2_i/(c_j c_k)``;
+    ``bbox``:  ``N + sum_i E1_i/c_i + sum_i B_jk/(c_j c_k) + B_xyz/(cx cy cz)``.
+    """
+    _check_overlap(overlap)
+    c = cell_sizes(stats.extent, resolution)
+    cc = np.array([c[1] * c[2], c[2] * c[0], c[0] * c[1]])  # c_j c_k for i = x, y, z
+    r = float(stats.n_triangles)
+    if edge:
+        r += float(np.sum(stats.e1_axes / c))
+    if area:
+        if overlap == "exact":
+            r += float(np.sum(stats.e2_axes / cc))
+        else:
+            r += float(np.sum(stats.bbox_pair_sums / cc)) + stats.bbox_triple_sum / float(np.prod(c))
+    return r
+
+
+def triangle_tests_per_ray(stats: SceneStats, resolution, *, mailbox=False, overlap="exact",
+                  edge=True, area=True) -> float:
+    """Expected triangle tests per isotropic line hitting the box (no termination).
+
+    See the module docstring for the four formulas (mailbox x overlap).
+    """
+    _check_overlap(overlap)
+    c = cell_sizes(stats.extent, resolution)
+    s_cell = 2.0 * (c[0] * c[1] + c[1] * c[2] + c[2] * c[0])
+    if not mailbox:
+        return expected_refs(stats, resolution, overlap=overlap, edge=edge, area=area) * s_cell / stats.surface
+    total = stats.n_triangles * s_cell
+    if overlap == "exact":
+        if edge:
+            total += float(np.dot(c, stats.perimeters))
+        if area:
+            total += 2.0 * stats.area
+    else:
+        e1 = stats.e1_axes
+        if edge:  # 2 sum_i (c_j E1_k + c_k E1_j)
+            total += 2.0 * float(c[1] * e1[2] + c[2] * e1[1] + c[2] * e1[0]
+                                 + c[0] * e1[2] + c[0] * e1[1] + c[1] * e1[0])
+        if area:
+            total += 2.0 * float(np.sum(stats.bbox_pair_sums))
+    return total / stats.surface
+
+
+def predict_uniform(stats: SceneStats, resolution, t_setup, t_step, t_int, mailbox=False, *,
+                    overlap="exact", terms: Terms | None = None) -> tuple[float, float, float]:
+    """Predicted cost of a uniform grid at a resolution.
+
+    Parameters
+    ----------
+    stats : SceneStats.
+    resolution : (3,) ints (nx, ny, nz), each >= 1.
+    t_setup, t_step, t_int : ns per ray, ns per cell step, ns per triangle test.
+    mailbox : kernel tests each triangle once per ray (ignored when ``terms`` is given).
+    overlap : "exact" (triangle/cell overlap) or "bbox" (bounding-box overlap).
+    terms : which terms to include (default: all, ``mailbox`` as given, no termination).
+
+    Returns
+    -------
+    (ns_per_ray, steps, tests) : ns per ray, cells visited per ray, triangle tests per ray.
+    """
+    if terms is None:
+        terms = Terms(mailbox=bool(mailbox))
+    f = float(terms.traversed_fraction)
+    if not 0.0 < f <= 1.0:
+        raise ValueError(f"traversed_fraction must be in (0, 1], got {f}")
+    for name, t in (("t_setup", t_setup), ("t_step", t_step), ("t_int", t_int)):
+        if not np.isfinite(t) or t < 0:
+            raise ValueError(f"{name} must be finite and >= 0, got {t!r}")
+    steps = f * steps_per_ray(stats.extent, resolution)
+    tests = f * triangle_tests_per_ray(stats, resolution, mailbox=terms.mailbox, overlap=overlap,
+                              edge=terms.edge, area=terms.area)
+    return float(t_setup + t_step * steps + t_int * tests), steps, tests
+
+
+def cubic_coefficients(stats: SceneStats, r, *, mailbox=False, overlap="exact", edge=True,
+                       area=True):
+    """``(a, b, c)`` of ``a h^3 + b h^2 - c = 0`` whose positive root is the optimal cubic cell size.
+
+    ``r`` may be a scalar or an array (T_int / T_step); the result broadcasts.
+    """
+    _check_overlap(overlap)
+    r = np.asarray(r, dtype=np.float64)
+    a = 2.0 * stats.n_triangles * r
+    if not edge:
+        b = 0.0 * r
+    elif overlap == "exact":
+        b = r * (float(np.sum(stats.perimeters)) / 6.0 if mailbox else stats.e1)
+    else:
+        b = r * ((2.0 / 3.0) * stats.e1 if mailbox else stats.e1)
+    c = stats.volume + (r * stats.bbox_triple_sum if (overlap == "bbox" and area and not mailbox) else 0.0 * r)
+    return a, b, c
+
+
+def solve_cell_cubic(a, b, c, xp=np):
+    """Positive root h of ``a h^3 + b h^2 - c = 0`` (a, c > 0, b >= 0), vectorised.
+
+    Works with ``xp = numpy`` or ``jax.numpy`` (fixed iteration count, no branches).
+    Scaled to ``x = h / h_a`` with ``h_a = (c/a)^(1/3)`` (computed in log space):
+    ``x^3 + beta x^2 - 1 = 0``, ``beta = b h_a^2 / c``.  The root lies in
+    ``[x0 / sqrt(2), x0]`` with ``x0 = min(1, beta^(-1/2))``; Newton from x0 decreases
+    monotonically to it (the function is convex and increasing for x > 0).
+    """
+    log_ha = (xp.log(c) - xp.log(a)) / 3.0
+    beta = b * xp.exp(2.0 * log_ha - xp.log(c))
+    x = xp.minimum(1.0, 1.0 / xp.sqrt(xp.maximum(beta, 1e-300)))
+    for _ in range(CUBIC_NEWTON_ITERATIONS):
+        fx = x * x * (x + beta) - 1.0
+        dfx = x * (3.0 * x + 2.0 * beta)
+        x = x - fx / dfx
+    return x * xp.exp(log_ha)
+
+
+def optimal_cell_size(stats: SceneStats, t_step, t_int, *, mailbox=False, overlap="exact",
+                      edge=True, area=True):
+    """Optimal cubic cell side h* (scene units) of a single-level grid (no termination)."""
+    if not (np.all(np.asarray(t_step) > 0) and np.all(np.asarray(t_int) > 0)):
+        raise ValueError("t_step and t_int must be > 0")
+    r = np.asarray(t_int, dtype=np.float64) / np.asarray(t_step, dtype=np.float64)
+    a, b, c = cubic_coefficients(stats, r, mailbox=mailbox, overlap=overlap, edge=edge, area=area)
+    h = solve_cell_cubic(a, b, c)
+    return float(h) if np.ndim(h) == 0 else h
+
+
+def optimal_uniform(stats: SceneStats, t_setup, t_step, t_int, *, mailbox=False, overlap="exact",
+                    terms: Terms | None = None, max_per_axis=MAX_CELLS_PER_AXIS,
+                    max_total=MAX_TOTAL_CELLS) -> tuple[tuple[int, int, int], float]:
+    """Best integer resolution of a single-level grid and its optimal cubic cell size.
+
+    The continuous optimum h* (cubic root) gives ``d_i / h*`` per axis; every
+    floor/ceil combination (8 candidates, clamped like :func:`cells_to_resolution`) and
+    the clamped talk rule are scored with :func:`predict_uniform`, and the cheapest is
+    returned.
+
+    Returns
+    -------
+    ((nx, ny, nz), h_star) : resolution (Python ints) and h* (scene units).
+    """
+    if terms is None:
+        terms = Terms(mailbox=bool(mailbox))
+    h = optimal_cell_size(stats, t_step, t_int, mailbox=terms.mailbox, overlap=overlap,
+                          edge=terms.edge, area=terms.area)
+    base = cells_to_resolution(stats.volume / h ** 3, stats.extent, max_per_axis=max_per_axis,
+                               max_total=max_total)
+    cont = np.minimum(stats.extent / h, float(max_per_axis))
+    options = [(np.floor(x), np.ceil(x)) for x in cont]
+    best, best_t = base, predict_uniform(stats, base, t_setup, t_step, t_int, overlap=overlap, terms=terms)[0]
+    for cand in itertools.product(*options):
+        n = tuple(int(min(max(v, 1), max_per_axis)) for v in cand)
+        if n[0] * n[1] * n[2] > max_total:
+            continue
+        t = predict_uniform(stats, n, t_setup, t_step, t_int, overlap=overlap, terms=terms)[0]
+        if t < best_t:
+            best, best_t = n, t
+    return best, h
+
+
+def cost_cubic(stats: SceneStats, h, t_setup, t_step, t_int, *, terms: Terms | None = None,
+               overlap="exact", xp=np):
+    """Predicted ns per ray for cubic cells of continuous side h (no rounding, no clamps).
+
+    The smooth form used by optimisers and by posterior propagation (``xp`` may be
+    ``jax.numpy``; every argument broadcasts).  ``steps = 6V/(S h)`` and the tests of
+    :func:`triangle_tests_per_ray` with ``c = (h, h, h)``, scaled by ``terms.traversed_fraction``.
+    """
+    if terms is None:
+        terms = Terms()
+    _check_overlap(overlap)
+    n = float(stats.n_triangles)
+    s = stats.surface
+    steps = 6.0 * stats.volume / (s * h)
+    edge = 1.0 if terms.edge else 0.0
+    area = 1.0 if terms.area else 0.0
+    if not terms.mailbox:
+        if overlap == "exact":
+            refs = n + edge * stats.e1 / h + area * stats.e2 / (h * h)
+        else:
+            refs = (n + edge * stats.e1 / h + area * float(np.sum(stats.bbox_pair_sums)) / (h * h)
+                    + area * stats.bbox_triple_sum / (h * h * h))
+        tests = refs * 6.0 * h * h / s
+    elif overlap == "exact":
+        tests = (6.0 * n * h * h + edge * h * float(np.sum(stats.perimeters)) + area * 2.0 * stats.area) / s
+    else:
+        tests = (6.0 * n * h * h + edge * 4.0 * h * stats.e1 + area * 2.0 * float(np.sum(stats.bbox_pair_sums))) / s
+    f = terms.traversed_fraction
+    return t_setup + f * (t_step * steps + t_int * tests)
