@@ -438,6 +438,7 @@ def design_from_measurements(
     measurements: list,
     kind: str = "in_context",
     intersector: str | None = None,
+    include_held_back: bool = False,
 ) -> dict:
     """Gather measurements of one kind into a design for :func:`calibrate.fit.fit`.
 
@@ -445,12 +446,15 @@ def design_from_measurements(
     kind : "in_context" (the exported fit) or "isolated".
     intersector : keep only this intersector; when None all selected records
         must share one (records with intersector null are always kept).
-    Records without values (an interrupted series) are skipped.
+    Records without values (an interrupted series) are skipped, and so are
+    records marked ``held_back`` (kept out of the fit to test its predictions)
+    unless ``include_held_back``.
     Returns {rays, steps, tests, subgrids: (J,) float arrays, times_ns: J lists}.
     """
     if kind not in MEASUREMENT_KINDS:
         raise UserError(f"kind must be one of {', '.join(MEASUREMENT_KINDS)}, got {kind!r}")
-    chosen = [m for m in measurements if m["kind"] == kind and m["values_ns"]]
+    chosen = [m for m in measurements if m["kind"] == kind and m["values_ns"]
+              and (include_held_back or not m.get("held_back", False))]
     if intersector is not None:
         chosen = [m for m in chosen if m["intersector"] in (None, intersector)]
     names = sorted({m["intersector"] for m in chosen if m["intersector"] is not None})

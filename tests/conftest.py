@@ -1,0 +1,38 @@
+"""Shared test helpers: where the real meshes are, and the first-hit agreement rule."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+#: ../shared/meshes beside the checkout (present in CI, absent in a user's fresh clone).
+SHARED_MESHES = Path(__file__).resolve().parents[2] / "shared" / "meshes"
+
+
+def shared_mesh(name: str) -> Path:
+    """Path of a real mesh, or skip the test with the reason."""
+    path = SHARED_MESHES / name
+    if not path.exists():
+        pytest.skip(f"real meshes not available: {path} is absent (../shared is beside the checkout in CI only)")
+    return path
+
+
+def first_hit_disagreements(t, prim, t_ref, prim_ref, rel_tol: float = 1e-9):
+    """Rays whose first hit differs from the reference, and the number of ties.
+
+    A ray agrees when both miss, or both hit at t within ``rel_tol`` and on the
+    same triangle; a tie is a ray whose t agrees but whose triangle differs
+    (two triangles met at the same point: a shared edge or a duplicate).
+    Returns (indices of disagreeing rays, tie count).
+    """
+    t = np.asarray(t)
+    t_ref = np.asarray(t_ref)
+    both_miss = np.isinf(t) & np.isinf(t_ref) & (prim < 0) & (prim_ref < 0)
+    finite = np.isfinite(t) & np.isfinite(t_ref)
+    close = np.zeros_like(finite)
+    close[finite] = np.abs(t[finite] - t_ref[finite]) <= rel_tol * np.abs(t_ref[finite])
+    same = both_miss | (close & (prim == prim_ref))
+    ties = close & (prim != prim_ref)
+    return np.flatnonzero(~(same | ties)), int(ties.sum())
