@@ -11,7 +11,9 @@ with a message naming the problem.
 from __future__ import annotations
 
 import math
+import numbers
 import os
+import reprlib
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +37,58 @@ DEFAULT_SUBDIVIDE_THRESHOLD = 2
 DEFAULT_RULE_MAX_AXIS = 256
 #: Levels a nested grid may have (top level included).
 MAX_LEVELS = _kernels.MAX_LEVELS
+#: Largest subdivide threshold (references per cell): a cell subdivides when its uint32_t
+#: reference count exceeds the threshold, and 2^32 - 2 is the largest such a count can exceed.
+MAX_SUBDIVIDE_THRESHOLD = 2**32 - 2
+#: Largest per-axis cell count: the kernel holds resolutions in an int32_t.
+MAX_AXIS_CELLS = 2**31 - 1
+#: Largest memory limit (bytes) and loop count: both must fit a signed 64-bit integer.
+MAX_INT64 = 2**63 - 1
+#: Resolution axes up to this many cells print in full in messages; larger ones as 3 significant digits.
+MAX_PRINTED_AXIS_DIGITS = 12
+
+_SHORT_REPR = reprlib.Repr()
+_SHORT_REPR.maxlong = 24
+_SHORT_REPR.maxstring = 40
+_SHORT_REPR.maxother = 60
+
+
+def _show(value) -> str:
+    """A short repr of a user's value for an error message (long numbers, strings, lists cut)."""
+    return _SHORT_REPR.repr(value)
+
+
+def _is_bool(value) -> bool:
+    return isinstance(value, (bool, np.bool_))
+
+
+def _is_real(value) -> bool:
+    """A real number (Python or numpy), not a bool and not a string."""
+    return isinstance(value, numbers.Real) and not _is_bool(value)
+
+
+def _whole_number(value, name: str, lo: int, hi: int, hi_text: str) -> int:
+    """``value`` as an int when it is a whole number (int or numpy integer, not bool) in [lo, hi]."""
+    if not (isinstance(value, numbers.Integral) and not _is_bool(value) and lo <= int(value) <= hi):
+        raise ValueError(f"{name} must be a whole number from {lo} to {hi_text}, got {_show(value)}")
+    return int(value)
+
+
+def _flag(value, name: str) -> bool:
+    """``value`` as a bool when it is True or False (Python or numpy)."""
+    if not _is_bool(value):
+        raise ValueError(f"{name} must be True or False, got {_show(value)}")
+    return bool(value)
+
+
+def _as_array(value, name: str, shape: str) -> np.ndarray:
+    """np.asarray(value); a ragged or unconvertible sequence raises ValueError naming ``name``."""
+    try:
+        return np.asarray(value)
+    except (ValueError, TypeError) as exc:
+        why = ("rows of different lengths" if "inhomogeneous" in str(exc)
+               else f"a value that is not an array ({type(exc).__name__})")
+        raise ValueError(f"{name} must have shape {shape}, got {why}") from None
 
 
 def intersector_code(name: str) -> int:
@@ -46,8 +100,8 @@ def intersector_code(name: str) -> int:
 
 
 def _check_vertices_faces(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
-    v = np.asarray(vertices)
-    f = np.asarray(faces)
+    v = _as_array(vertices, "vertices", "(V, 3)")
+    f = _as_array(faces, "faces", "(F, 3)")
     if v.ndim != 2 or v.shape[1] != 3:
         raise ValueError(f"vertices must have shape (V, 3), got {v.shape}")
     if f.ndim != 2:
@@ -61,21 +115,20 @@ def _check_vertices_faces(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
     if not (np.issubdtype(v.dtype, np.floating) or np.issubdtype(v.dtype, np.integer)):
         raise ValueError(f"vertices must be numbers, got dtype {v.dtype}")
     if not np.issubdtype(f.dtype, np.integer):
-        if np.issubdtype(f.dtype, np.floating) and np.all(np.isfinite(f)) and np.all(f == np.round(f)):
-            f = f.astype(np.int64)
-        else:
+        if not (np.issubdtype(f.dtype, np.floating) and np.all(np.isfinite(f)) and np.all(f == np.round(f))):
             raise ValueError(f"faces must be integer vertex indices, got dtype {f.dtype}")
     v = np.ascontiguousarray(v, dtype=np.float64)
-    f = np.ascontiguousarray(f, dtype=np.int64)
     bad = ~np.isfinite(v).all(axis=1)
     if bad.any():
         raise ValueError(f"{int(bad.sum())} vertices have NaN or Inf coordinates (first: vertex {int(np.argmax(bad))})")
+    # range checks in the given dtype: uint64 past 2^63 or huge whole floats would wrap in int64
     if f.min() < 0:
         raise ValueError(f"face {int(np.argmin(f.min(axis=1)))} has a negative vertex index {int(f.min())}")
     if f.max() >= v.shape[0]:
         raise ValueError(
             f"face {int(np.argmax(f.max(axis=1)))} refers to vertex {int(f.max())}, "
             f"but the mesh has only {v.shape[0]} vertices")
+    f = np.ascontiguousarray(f, dtype=np.int64)
     return v, f
 
 
@@ -131,15 +184,21 @@ class Scene:
         """
         import trimesh
 
-        p = Path(path)
-        if not p.exists():
-            raise ValueError(f"{p}: no such file")
-        if p.is_dir():
-            raise ValueError(f"{p}: is a directory, not a mesh file")
-        if not os.access(p, os.R_OK):
-            raise ValueError(f"{p}: not readable")
-        if p.stat().st_size == 0:
-            raise ValueError(f"{p}: the file is empty")
+        try:
+            p = Path(path)
+        except TypeError:
+            raise ValueError(f"path must be a mesh file's path (str or os.PathLike), got {_show(path)}") from None
+        try:
+            if not p.exists():
+                raise ValueError(f"{p}: no such file")
+            if p.is_dir():
+                raise ValueError(f"{p}: is a directory, not a mesh file")
+            if not os.access(p, os.R_OK):
+                raise ValueError(f"{p}: not readable")
+            if p.stat().st_size == 0:
+                raise ValueError(f"{p}: the file is empty")
+        except OSError as exc:  # e.g. a name too long for the file system
+            raise ValueError(f"{p}: cannot access it ({exc.strerror or type(exc).__name__})") from None
         try:
             loaded = trimesh.load(str(p), force="mesh", process=False)
         except Exception as exc:  # trimesh raises many types for a corrupt file
@@ -183,8 +242,8 @@ class Scene:
 
 
 def _check_rays(origins, directions) -> tuple[np.ndarray, np.ndarray]:
-    o = np.asarray(origins)
-    d = np.asarray(directions)
+    o = _as_array(origins, "origins", "(n, 3)")
+    d = _as_array(directions, "directions", "(n, 3)")
     for name, a in (("origins", o), ("directions", d)):
         if a.ndim != 2 or a.shape[1] != 3:
             raise ValueError(f"{name} must have shape (n, 3), got {a.shape}")
@@ -204,19 +263,67 @@ def _check_rays(origins, directions) -> tuple[np.ndarray, np.ndarray]:
     return o, d
 
 
-def _check_resolution(resolution, what="resolution") -> tuple[int, int, int]:
+def _whole(x) -> int | None:
+    """A real, non-bool number x as an int when it is whole and finite, else None."""
+    if not _is_real(x):
+        return None
+    if isinstance(x, numbers.Integral):
+        return int(x)
     try:
-        res = tuple(int(x) for x in resolution)
-        exact = all(float(x) == int(x) for x in resolution)
-    except (TypeError, ValueError, OverflowError):
-        raise ValueError(f"{what} must be three whole numbers (nx, ny, nz), got {resolution!r}") from None
-    if len(res) != 3 or not exact:
-        raise ValueError(f"{what} must be three whole numbers (nx, ny, nz), got {resolution!r}")
+        f = float(x)
+    except (OverflowError, ValueError):
+        return None
+    return int(f) if math.isfinite(f) and f == math.floor(f) else None
+
+
+def _show_axis(n: int) -> str:
+    """An axis's cell count; past MAX_PRINTED_AXIS_DIGITS digits as 3 significant digits (1e+300)."""
+    digits = str(abs(n))
+    if len(digits) <= MAX_PRINTED_AXIS_DIGITS:
+        return str(n)
+    mantissa = digits[0] + ("." + digits[1:3]).rstrip("0").rstrip(".")
+    return f"{'-' if n < 0 else ''}{mantissa}e+{len(digits) - 1}"
+
+
+def _show_axes(res) -> str:
+    """'nx x ny x nz' for a message (huge axes shortened by _show_axis)."""
+    return "x".join(_show_axis(n) for n in res)
+
+
+def _check_resolution(resolution, what="resolution") -> tuple[int, int, int]:
+    bad = ValueError(f"{what} must be three whole numbers (nx, ny, nz), got {_show(resolution)}")
+    if isinstance(resolution, (str, bytes)):
+        raise bad
+    try:
+        items = list(resolution)
+    except TypeError:
+        raise bad from None
+    res = tuple(_whole(x) for x in items)
+    if len(res) != 3 or None in res:
+        raise bad
     if min(res) < 1:
-        raise ValueError(f"{what} {res[0]}x{res[1]}x{res[2]}: every axis needs at least 1 cell")
-    if max(res) > 2**31 - 1:
-        raise ValueError(f"{what} {res[0]}x{res[1]}x{res[2]}: an axis exceeds 2^31 - 1 cells")
+        raise ValueError(f"{what} {_show_axes(res)}: every axis needs at least 1 cell")
+    if max(res) > MAX_AXIS_CELLS:
+        raise ValueError(f"{what} {_show_axes(res)}: an axis exceeds 2^31 - 1 cells")
     return res
+
+
+def _positive_finite(x) -> bool:
+    """x is a real, non-bool number, finite and > 0."""
+    if not _is_real(x):
+        return False
+    try:
+        f = float(x)
+    except (OverflowError, ValueError):
+        return False
+    return math.isfinite(f) and f > 0
+
+
+def _list_or_none(values) -> list | None:
+    try:
+        return list(values)
+    except TypeError:
+        return None
 
 
 def manta_rule(levels: int, scale: float = MANTA_SCALE) -> tuple[list[float], list[float]]:
@@ -255,17 +362,18 @@ class Grid:
         if not isinstance(scene, Scene):
             raise ValueError(f"scene must be a calibrate.Scene, got {type(scene).__name__}")
         res = _check_resolution(resolution)
-        if insertion not in INSERTIONS:
-            raise ValueError(f"unknown insertion {insertion!r}; choose one of {', '.join(INSERTIONS)}")
-        if memory_limit is not None and (not isinstance(memory_limit, (int, np.integer)) or memory_limit <= 0):
-            raise ValueError(f"memory_limit must be a positive number of bytes, got {memory_limit!r}")
+        if not isinstance(insertion, str) or insertion not in INSERTIONS:
+            raise ValueError(f"unknown insertion {_show(insertion)}; choose one of {', '.join(INSERTIONS)}")
+        if memory_limit is not None:
+            memory_limit = _whole_number(memory_limit, "memory_limit (bytes)", 1, MAX_INT64, "2^63 - 1")
+        mailbox = _flag(mailbox, "mailbox")
         box = list(scene.box_lo) + list(scene.box_hi)
-        options = dict(resolution=res, intersector=intersector, mailbox=bool(mailbox), insertion=insertion,
+        options = dict(resolution=res, intersector=intersector, mailbox=mailbox, insertion=insertion,
                        levels=levels, threshold=threshold)
         try:
             cap = _kernels.build(
                 scene.vertices, scene.faces, res, intersector=intersector_code(intersector),
-                insertion=INSERTIONS[insertion], mailbox=bool(mailbox), box=box,
+                insertion=INSERTIONS[insertion], mailbox=mailbox, box=box,
                 memory_limit=int(memory_limit or 0), levels=int(levels), threshold=int(threshold),
                 level_scale=level_scale, level_exponent=level_exponent,
                 subgrid_resolutions=subgrid_resolutions, rule_max_axis=int(rule_max_axis))
@@ -304,18 +412,17 @@ class Grid:
         ``subgrid_resolutions`` ((nx*ny*nz, 3) int, x fastest; a row of zeros
         means no subgrid), deeper levels following the rule.
         """
-        if not isinstance(levels, (int, np.integer)) or not 1 <= levels <= MAX_LEVELS:
-            raise ValueError(f"levels must be a whole number from 1 to {MAX_LEVELS}, got {levels!r}")
-        if not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale > 0):
-            raise ValueError(f"scale must be a positive number, got {scale!r}")
-        if not isinstance(threshold, (int, np.integer)) or threshold < 0:
-            raise ValueError(f"threshold must be a whole number >= 0, got {threshold!r}")
-        scales, exps = manta_rule(int(levels), scale)
+        levels = _whole_number(levels, "levels", 1, MAX_LEVELS, str(MAX_LEVELS))
+        if not _positive_finite(scale):
+            raise ValueError(f"scale must be a positive number, got {_show(scale)}")
+        threshold = _whole_number(threshold, "threshold", 0, MAX_SUBDIVIDE_THRESHOLD, "2^32 - 2")
+        rule_max_axis = _whole_number(rule_max_axis, "rule_max_axis", 1, MAX_AXIS_CELLS, "2^31 - 1")
+        scales, exps = manta_rule(levels, float(scale))
         if exponents is not None:
-            exponents = [float(e) for e in exponents]
-            if len(exponents) != levels or not all(math.isfinite(e) and e > 0 for e in exponents):
-                raise ValueError(f"exponents needs {levels} positive numbers, one per level")
-            exps[:levels] = exponents
+            items = None if isinstance(exponents, (str, bytes)) else _list_or_none(exponents)
+            if items is None or len(items) != levels or not all(_positive_finite(e) for e in items):
+                raise ValueError(f"exponents needs {levels} positive numbers, one per level, got {_show(exponents)}")
+            exps[:levels] = [float(e) for e in items]
         if not isinstance(scene, Scene):
             raise ValueError(f"scene must be a calibrate.Scene, got {type(scene).__name__}")
         if resolution is None:
@@ -324,8 +431,8 @@ class Grid:
         res = _check_resolution(resolution)
         sub = None
         if subgrid_resolutions is not None:
-            sub = np.asarray(subgrid_resolutions)
             ncell = res[0] * res[1] * res[2]
+            sub = _as_array(subgrid_resolutions, "subgrid_resolutions", f"({ncell}, 3)")
             if sub.shape != (ncell, 3) or not np.issubdtype(sub.dtype, np.integer):
                 raise ValueError(f"subgrid_resolutions must be whole numbers of shape ({ncell}, 3), one row per "
                                  f"top-level cell, got {sub.shape} {sub.dtype}")
@@ -386,6 +493,7 @@ class Grid:
         returns ``(t, prim, steps, tests, subgrids)``: the same hits as
         :meth:`intersect`.
         """
+        hits = _flag(hits, "hits")
         o, d = _check_rays(origins, directions)
         t, prim, steps, tests, subgrids = _kernels.count(self._capsule, o, d)
         if hits:
@@ -395,9 +503,8 @@ class Grid:
     def bench(self, origins, directions, loops: int = 1) -> tuple[int, float]:
         """Trace the batch ``loops`` times in C; returns (elapsed ns, checksum)."""
         o, d = _check_rays(origins, directions)
-        if not isinstance(loops, (int, np.integer)) or loops < 1:
-            raise ValueError(f"loops must be a whole number >= 1, got {loops!r}")
-        return _kernels.bench(self._capsule, o, d, int(loops))
+        loops = _whole_number(loops, "loops", 1, MAX_INT64, "2^63 - 1")
+        return _kernels.bench(self._capsule, o, d, loops)
 
     def timed_batch(self, origins, directions):
         """A ``run(loops) -> (elapsed_ns, checksum)`` callable for :func:`calibrate.protocol.measure`."""
@@ -405,13 +512,15 @@ class Grid:
         cap = self._capsule
 
         def run(loops: int):
-            return _kernels.bench(cap, o, d, int(loops))
+            return _kernels.bench(cap, o, d, _whole_number(loops, "loops", 1, MAX_INT64, "2^63 - 1"))
 
         return run
 
 
 def brute_force(scene: Scene, origins, directions, intersector: str = "watertight"):
     """Reference first hits: every ray against every triangle.  Returns (t, prim) like Grid.intersect."""
+    if not isinstance(scene, Scene):
+        raise ValueError(f"scene must be a calibrate.Scene, got {type(scene).__name__}")
     o, d = _check_rays(origins, directions)
     return _kernels.brute_force(scene.vertices, scene.faces, intersector_code(intersector), o, d)
 
@@ -419,15 +528,25 @@ def brute_force(scene: Scene, origins, directions, intersector: str = "watertigh
 def empty_grid(box_lo, box_hi, resolution, intersector: str = "watertight") -> Grid:
     """A grid with no triangles over a box: times set-up and stepping alone (T_setup, T_step)."""
     res = _check_resolution(resolution)
-    lo = np.asarray(box_lo, dtype=np.float64)
-    hi = np.asarray(box_hi, dtype=np.float64)
+    corners = []
+    for name, corner in (("box_lo", box_lo), ("box_hi", box_hi)):
+        a = _as_array(corner, name, "(3,)")
+        if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
+            raise ValueError(f"{name} must be numbers (x, y, z), got {_show(corner)}")
+        if a.shape != (3,):
+            raise ValueError(f"{name} must have shape (3,), got {a.shape}")
+        corners.append(a.astype(np.float64))
+    lo, hi = corners
     scene = Scene.__new__(Scene)
     scene.vertices = np.zeros((1, 3))
     scene.faces = np.zeros((0, 3), dtype=np.int64)
     scene.name = "empty"
     scene.box_lo, scene.box_hi = lo, hi
     scene._stats = None
-    cap = _kernels.build(scene.vertices, scene.faces, res, intersector=intersector_code(intersector),
-                         box=list(lo) + list(hi))
+    try:
+        cap = _kernels.build(scene.vertices, scene.faces, res, intersector=intersector_code(intersector),
+                             box=list(lo) + list(hi))
+    except (OverflowError, MemoryError) as exc:
+        raise ValueError(f"cannot build the grid: {exc}") from None
     return Grid(scene, cap, dict(resolution=res, intersector=intersector, mailbox=False, insertion="exact",
                                  levels=1, threshold=DEFAULT_SUBDIVIDE_THRESHOLD))

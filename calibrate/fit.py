@@ -427,7 +427,7 @@ class _LogPosterior:
     support). ``value_and_grad`` serves nlopt on a single (P+1,) point.
     """
 
-    def __init__(self, prep: PreparedDesign):
+    def __init__(self, prep: PreparedDesign, priors: Mapping | None = None):
         self.x = prep.counts
         self.ybar = prep.log_mean
         self.v = prep.scale2
@@ -442,6 +442,16 @@ class _LogPosterior:
         self.norm = np.sum(
             _lgamma_half(self.nu + 1.0) - _lgamma_half(self.nu) - 0.5 * np.log(np.pi * self.nu)
         )
+        # Optional log-normal priors: (P,) centres (log ns) and inverse variances (0: none).
+        self.prior_mu = np.zeros(self.n_params)
+        self.prior_prec = np.zeros(self.n_params)
+        for name, (median_ns, sigma_log) in (priors or {}).items():
+            if name not in prep.names:
+                continue
+            p = list(prep.names).index(name)
+            self.prior_mu[p] = math.log(median_ns)
+            self.prior_prec[p] = 1.0 / sigma_log**2
+        self.has_priors = bool(self.prior_prec.any())
 
     def __call__(self, theta: np.ndarray) -> np.ndarray:
         theta = np.atleast_2d(theta)
@@ -458,6 +468,9 @@ class _LogPosterior:
         with np.errstate(divide="ignore", invalid="ignore"):  # s2 = 0: -inf below
             ll = self.half_nu1 * np.log1p(r * r / (self.nu * s2)) + 0.5 * np.log(s2)
         val = self.norm - ll.sum(axis=1) - self.half_inv_tau_prior2 * tau2
+        if self.has_priors:
+            dev = theta[:, :-1] - self.prior_mu
+            val = val - 0.5 * (dev * dev * self.prior_prec).sum(axis=1)
         if all_ok:
             out = val
         else:
@@ -486,6 +499,10 @@ class _LogPosterior:
         g_t = -(dll_dr[:, None] * terms / mu[:, None]).sum(axis=0)
         dll_ds2 = 0.5 * (self.nu + 1.0) * r * r / (s2 * q) - 0.5 / s2
         g_tau = np.sum(dll_ds2 * 2.0 * tau) - tau / TAU_PRIOR_SCALE**2
+        if self.has_priors:
+            dev = log_t - self.prior_mu
+            val -= 0.5 * float((dev * dev * self.prior_prec).sum())
+            g_t = g_t - dev * self.prior_prec
         return float(val), np.append(g_t, g_tau)
 
 
@@ -565,6 +582,8 @@ def _check_identified(theta: np.ndarray, post: _LogPosterior, prep: PreparedDesi
     terms = post.x * t
     share = (terms / terms.sum(axis=1, keepdims=True)).max(axis=0)
     for p, name in enumerate(prep.names):
+        if post.prior_prec[p] > 0:
+            continue  # an informative prior identifies it
         label = CONSTANT_LABELS[name]
         at_floor = theta[p] <= post.lo[p] + AT_BOUND_FRACTION * (post.hi[p] - post.lo[p])
         if share[p] < MIN_TERM_SHARE or at_floor:
@@ -702,6 +721,7 @@ def fit(
     n_walkers: int = N_WALKERS,
     autocorr_tol: float = AUTOCORR_TOL,
     required: Sequence[str] = REQUIRED_COUNT_KEYS,
+    priors: Mapping | None = None,
 ) -> FitResult:
     """Fit T_setup, T_step, T_int (and T_sub) to batch timings.
 
@@ -715,13 +735,22 @@ def fit(
     required : count columns that must be fitted (see :func:`prepare_design`);
         constants of other all-zero columns, and ``ratio`` without both
         T_step and T_int, are None in ``constants``.
+    priors : optional ``{name: (median_ns, sigma_log)}``: a log-normal prior on
+        that constant (e.g. from an isolating microbenchmark), for a term that
+        is too small a part of every batch to be identified by the batches alone.
 
     Returns a :class:`FitResult`. Raises ValueError for malformed or ill-posed
     designs (naming the problem) and ConvergenceError when the posterior does
     not converge within ``max_steps``.
     """
     prep = prepare_design(design, required)
-    post = _LogPosterior(prep)
+    for name, spec in (priors or {}).items():
+        if name not in CONSTANT_NAMES:
+            raise ValueError(f"prior for unknown constant {name!r}")
+        median_ns, sigma_log = spec
+        if not (median_ns > 0 and math.isfinite(median_ns) and sigma_log > 0 and math.isfinite(sigma_log)):
+            raise ValueError(f"prior for {name} needs a positive median and log-scale, got {spec!r}")
+    post = _LogPosterior(prep, priors)
     n_dim = post.n_params + 1
     if not autocorr_tol >= MIN_AUTOCORR_TOL:
         raise ValueError(f"autocorr_tol = {autocorr_tol} is below {MIN_AUTOCORR_TOL}: the tau estimate itself is unreliable")
@@ -763,6 +792,7 @@ def fit(
             "n_values": int(prep.n_repeats.sum()),
             "seed": int(seed),
             "noise_model": "lognormal repeats (per-config variance shrunk to pooled, t marginal) + shared misfit scatter",
+            "priors": {k: [float(v[0]), float(v[1])] for k, v in (priors or {}).items()},
         }
     )
     result.diagnostics = info

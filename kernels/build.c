@@ -41,7 +41,7 @@ typedef struct {
 static uint64_t grid_bytes(const builder *b)
 {
     const gc_grid *g = b->g;
-    return (uint64_t)g->n_tris * (sizeof(gc_tri) + sizeof(int32_t)) +
+    return (uint64_t)g->n_tris * (sizeof(gc_tri) + sizeof(int32_t)) + (uint64_t)g->n_refs * sizeof(gc_tri) +
            (uint64_t)b->cap_nodes * sizeof(gc_node) +
            (uint64_t)b->cap_cells * sizeof(gc_cell) + (uint64_t)b->cap_refs * sizeof(uint32_t);
 }
@@ -605,13 +605,31 @@ gc_status gc_grid_build(const gc_mesh *mesh, const gc_build_params *params, gc_g
         gc_grid_free(g);
         return st;
     }
-    /* give back the doubling slack */
+    /* give back the doubling slack, then lay each reference's triangle beside it */
     if (g->n_refs > 0) {
         uint32_t *r = realloc(g->refs, (size_t)g->n_refs * sizeof(uint32_t));
         if (r) {
             g->refs = r;
         }
+        b.cap_refs = g->n_refs;
     }
+    st = check_memory(&b, (uint64_t)g->n_refs * sizeof(gc_tri), "the per-reference triangles");
+    if (st == GC_OK) {
+        g->ref_tris = malloc((size_t)(g->n_refs > 0 ? g->n_refs : 1) * sizeof(gc_tri));
+        if (!g->ref_tris) {
+            gc_set_error(err, "out of memory copying %lld triangle references", (long long)g->n_refs);
+            st = GC_ERR_NO_MEMORY;
+        }
+    }
+    if (st != GC_OK) {
+        gc_grid_free(g);
+        return st;
+    }
+    for (int64_t k = 0; k < g->n_refs; ++k) {
+        g->ref_tris[k] = g->tris[g->refs[k]];
+    }
+    free(g->tris);
+    g->tris = NULL;
     *out = g;
     return GC_OK;
 }

@@ -6,7 +6,8 @@
  *           lines (tri_id maps back to the mesh's face index);
  *   nodes : one per (sub)grid, node 0 is the top level;
  *   cells : every node's cells, node k owning [first_cell, first_cell + nx*ny*nz);
- *   refs  : triangle indices; a leaf cell owns refs[begin, begin + count).
+ *   refs  : triangle indices; a leaf cell owns refs[begin, begin + count);
+ *   ref_tris : the vertices of each reference's triangle, parallel to refs.
  * A cell whose count is GC_CELL_SUBGRID holds a subgrid: its begin is a node index.
  */
 #ifndef GC_INTERNAL_H
@@ -49,7 +50,10 @@ _Static_assert(sizeof(gc_cell) == 8, "gc_cell is two 32-bit fields");
 _Static_assert(sizeof(gc_node) == 120, "gc_node layout");
 
 struct gc_grid {
-    gc_tri *tris;       /* in Morton order of their centroids: a cell's triangles lie close in memory */
+    gc_tri *tris;       /* in Morton order of their centroids (build only; freed after) */
+    gc_tri *ref_tris;   /* a copy of each reference's triangle, parallel to refs: a cell's
+                         * triangles stream from one contiguous block, so the cost of a
+                         * test does not depend on where the triangle lies in memory */
     int32_t *tri_id;    /* the mesh's face index of each stored triangle */
     int64_t n_tris;
     gc_node *nodes;

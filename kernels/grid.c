@@ -140,6 +140,7 @@ void gc_grid_free(gc_grid *grid)
         return;
     }
     free(grid->tris);
+    free(grid->ref_tris);
     free(grid->tri_id);
     free(grid->nodes);
     free(grid->cells);
@@ -165,7 +166,8 @@ void gc_grid_get_info(const gc_grid *g, gc_grid_info *info)
         }
     }
     info->n_empty_cells = empty;
-    info->memory_bytes = (int64_t)(sizeof(gc_grid) + (size_t)g->n_tris * (sizeof(gc_tri) + sizeof(int32_t)) +
+    info->memory_bytes = (int64_t)(sizeof(gc_grid) + (size_t)g->n_tris * sizeof(int32_t) +
+                                   (size_t)g->n_refs * sizeof(gc_tri) +
                                    (size_t)g->n_nodes * sizeof(gc_node) +
                                    (size_t)g->n_cells * sizeof(gc_cell) +
                                    (size_t)g->n_refs * sizeof(uint32_t));

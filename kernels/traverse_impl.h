@@ -23,8 +23,14 @@ static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *
 #endif
 )
 {
-    int32_t c[3], step[3], stop[3];
+    /* Per axis: the entry cell, the t of the next cell boundary, the t between
+     * boundaries, the cell where the walk leaves the grid, and the step in the
+     * flat cell index.  An axis the ray does not move along has t_next = inf,
+     * dt = 0 and is never chosen. */
+    int32_t c[3], stop[3];
+    int64_t stride[3];
     double t_next[3], dt[3];
+    const int64_t axis_stride[3] = {1, (int64_t)nd->n[0], (int64_t)nd->n[0] * (int64_t)nd->n[1]};
     for (int i = 0; i < 3; ++i) {
         double p = r->o[i] + ta * r->d[i];
         double f = floor((p - nd->lo[i]) * nd->inv_cell[i]);
@@ -32,30 +38,37 @@ static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *
         f = f > 0.0 ? (f < top ? f : top) : 0.0; /* NaN-free: p is finite */
         c[i] = (int32_t)f;
         if (r->d[i] > 0.0) {
-            step[i] = 1;
             stop[i] = nd->n[i];
+            stride[i] = axis_stride[i];
             double edge = (c[i] + 1 == nd->n[i]) ? nd->hi[i] : nd->lo[i] + (double)(c[i] + 1) * nd->cell[i];
             t_next[i] = (edge - r->o[i]) * r->inv_d[i];
             dt[i] = nd->cell[i] * r->inv_d[i];
         } else if (r->d[i] < 0.0) {
-            step[i] = -1;
             stop[i] = -1;
+            stride[i] = -axis_stride[i];
             double edge = nd->lo[i] + (double)c[i] * nd->cell[i];
             t_next[i] = (edge - r->o[i]) * r->inv_d[i];
             dt[i] = -nd->cell[i] * r->inv_d[i];
         } else {
-            step[i] = 0;
             stop[i] = -2; /* never reached */
+            stride[i] = 0;
             t_next[i] = INFINITY;
-            dt[i] = INFINITY;
+            dt[i] = 0.0;
         }
     }
+    /* The walk keeps its state in scalars and picks the next axis without a
+     * branch: which axis a ray crosses next is a coin toss for the branch
+     * predictor, and a mispredicted step would cost more than the step itself. */
+    int32_t cx = c[0], cy = c[1], cz = c[2];
+    const int32_t ux = stride[0] > 0 ? 1 : -1, uy = stride[1] > 0 ? 1 : -1, uz = stride[2] > 0 ? 1 : -1;
+    double tx = t_next[0], ty = t_next[1], tz = t_next[2];
+    int64_t idx = (int64_t)gc_cell_index(nd, cx, cy, cz);
     double t_enter = ta;
     for (;;) {
-        const int axis = (t_next[0] < t_next[1]) ? (t_next[0] < t_next[2] ? 0 : 2)
-                                                 : (t_next[1] < t_next[2] ? 1 : 2);
-        const double t_exit = t_next[axis] < tb ? t_next[axis] : tb;
-        const gc_cell cell = g->cells[gc_cell_index(nd, c[0], c[1], c[2])];
+        double t_axis = tx < ty ? tx : ty;
+        t_axis = t_axis < tz ? t_axis : tz;
+        const double t_exit = t_axis < tb ? t_axis : tb;
+        const gc_cell cell = g->cells[idx];
 #if GC_TW_COUNT
         cnt->steps++;
 #endif
@@ -68,6 +81,7 @@ static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *
 #endif
         } else {
             const uint32_t *ref = g->refs + cell.begin;
+            const gc_tri *tri = g->ref_tris + cell.begin;
             for (uint32_t k = 0; k < cell.count; ++k) {
                 const uint32_t prim = ref[k];
                 if (mail) {
@@ -80,7 +94,7 @@ static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *
                 cnt->tests++;
 #endif
                 double t;
-                if (GC_TW_ISECT(r, &g->tris[prim], hit->t, &t)) {
+                if (GC_TW_ISECT(r, &tri[k], hit->t, &t)) {
                     hit->t = t;
                     hit->prim = (int32_t)prim;
                 }
@@ -89,12 +103,23 @@ static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *
         if (hit->t <= t_exit || !(t_exit < tb)) {
             return;
         }
-        c[axis] += step[axis];
-        if (c[axis] == stop[axis]) {
+        /* the axis whose boundary comes first (ties: any of them is right), as
+         * all-ones/all-zeros masks so the update below has no branch */
+        const int ax = (tx <= ty) & (tx <= tz);
+        const int ay = !ax & (ty <= tz);
+        const int az = !ax & !ay;
+        const int64_t mx = -(int64_t)ax, my = -(int64_t)ay, mz = -(int64_t)az;
+        cx += (int32_t)(mx & ux);
+        cy += (int32_t)(my & uy);
+        cz += (int32_t)(mz & uz);
+        idx += (mx & stride[0]) | (my & stride[1]) | (mz & stride[2]);
+        tx += (double)ax * dt[0];
+        ty += (double)ay * dt[1];
+        tz += (double)az * dt[2];
+        if ((cx == stop[0]) | (cy == stop[1]) | (cz == stop[2])) {
             return;
         }
-        t_enter = t_next[axis];
-        t_next[axis] += dt[axis];
+        t_enter = t_axis;
     }
 }
 

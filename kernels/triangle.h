@@ -30,26 +30,29 @@ GC_INLINE int gc_isect_moller_trumbore(const gc_ray *r, const gc_tri *tri, doubl
     double p[3] = {r->d[1] * e2[2] - r->d[2] * e2[1], r->d[2] * e2[0] - r->d[0] * e2[2],
                    r->d[0] * e2[1] - r->d[1] * e2[0]};
     double det = e1[0] * p[0] + e1[1] * p[1] + e1[2] * p[2];
-    /* det = e1 . (d x e2): bound its rounding by the magnitudes of every product in it */
-    double mag = (fabs(e1[0]) + fabs(e1[1]) + fabs(e1[2])) * (fabs(r->d[0]) + fabs(r->d[1]) + fabs(r->d[2])) *
-                 (fabs(e2[0]) + fabs(e2[1]) + fabs(e2[2]));
-    if (!(fabs(det) > GC_DET_ULPS * mag)) {
-        return 0;
-    }
-    double inv_det = 1.0 / det;
     double s[3] = {r->o[0] - v0[0], r->o[1] - v0[1], r->o[2] - v0[2]};
-    double u = (s[0] * p[0] + s[1] * p[1] + s[2] * p[2]) * inv_det;
-    if (!(u >= 0.0 && u <= 1.0)) {
-        return 0;
-    }
     double q[3] = {s[1] * e1[2] - s[2] * e1[1], s[2] * e1[0] - s[0] * e1[2],
                    s[0] * e1[1] - s[1] * e1[0]};
-    double v = (r->d[0] * q[0] + r->d[1] * q[1] + r->d[2] * q[2]) * inv_det;
-    if (!(v >= 0.0 && u + v <= 1.0)) {
+    /* Barycentrics and t scaled by det, compared with det's sign folded in, so
+     * the test divides only on a hit and decides everything without a branch:
+     * whether a test hits is unpredictable, and a mispredicted branch costs as
+     * much as the test. */
+    const double sgn = det < 0.0 ? -1.0 : 1.0;
+    const double adet = det * sgn;
+    const double u = (s[0] * p[0] + s[1] * p[1] + s[2] * p[2]) * sgn;
+    const double v = (r->d[0] * q[0] + r->d[1] * q[1] + r->d[2] * q[2]) * sgn;
+    const double tt = (e2[0] * q[0] + e2[1] * q[1] + e2[2] * q[2]) * sgn;
+    /* det = e1 . (d x e2): its rounding is bounded by the magnitudes of every product in it */
+    const double mag = (fabs(e1[0]) + fabs(e1[1]) + fabs(e1[2])) *
+                       (fabs(r->d[0]) + fabs(r->d[1]) + fabs(r->d[2])) *
+                       (fabs(e2[0]) + fabs(e2[1]) + fabs(e2[2]));
+    const int ok = (adet > GC_DET_ULPS * mag) & (u >= 0.0) & (v >= 0.0) & (u + v <= adet) & (tt > 0.0) &
+                   (tt < t_max * adet);
+    if (!ok) {
         return 0;
     }
-    double t = (e2[0] * q[0] + e2[1] * q[1] + e2[2] * q[2]) * inv_det;
-    if (!(t > 0.0 && t < t_max)) {
+    const double t = tt / adet;
+    if (!(t > 0.0 && t < t_max)) { /* the scaled comparison can round the other way */
         return 0;
     }
     *t_out = t;
@@ -77,17 +80,30 @@ GC_INLINE int gc_isect_watertight(const gc_ray *r, const gc_tri *tri, double t_m
     double u = cx * by - cy * bx;
     double v = ax * cy - ay * cx;
     double w = bx * ay - by * ax;
-    if ((u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0)) {
-        return 0;
-    }
     double det = u + v + w;
-    double mag = fabs(cx * by) + fabs(cy * bx) + fabs(ax * cy) + fabs(ay * cx) + fabs(bx * ay) + fabs(by * ax);
-    if (!(fabs(det) > GC_DET_ULPS * mag)) {
-        return 0;
-    }
+    /* Rounding bound of det.  Each sheared coordinate (e.g. ax = a[kx] - sx a[kz])
+     * carries an error of about one ulp of the magnitudes it was made from
+     * (max_ = |a[kx]| + |sx a[kz]|), which can exceed what is left of it after
+     * cancellation; a product p q then errs by about m_p |q| + |p| m_q. */
+    const double max_ = fabs(a[kx]) + fabs(r->sx * a[kz]), may = fabs(a[ky]) + fabs(r->sy * a[kz]);
+    const double mbx = fabs(b[kx]) + fabs(r->sx * b[kz]), mby = fabs(b[ky]) + fabs(r->sy * b[kz]);
+    const double mcx = fabs(c[kx]) + fabs(r->sx * c[kz]), mcy = fabs(c[ky]) + fabs(r->sy * c[kz]);
+    const double mag = mcx * fabs(by) + fabs(cx) * mby + mcy * fabs(bx) + fabs(cy) * mbx + max_ * fabs(cy) +
+                       fabs(ax) * mcy + may * fabs(cx) + fabs(ay) * mcx + mbx * fabs(ay) + fabs(bx) * may +
+                       mby * fabs(ax) + fabs(by) * max_;
     double az = r->sz * a[kz], bz = r->sz * b[kz], cz = r->sz * c[kz];
     double tt = u * az + v * bz + w * cz;
-    double t = tt / det;
+    /* The paper's sign tests, with det's sign folded into T so that nothing
+     * divides before a hit and nothing branches before the verdict. */
+    const double sgn = det < 0.0 ? -1.0 : 1.0;
+    const double adet = det * sgn;
+    const double ts = tt * sgn;
+    const int inside = ((u >= 0.0) & (v >= 0.0) & (w >= 0.0)) | ((u <= 0.0) & (v <= 0.0) & (w <= 0.0));
+    const int ok = inside & (adet > GC_DET_ULPS * mag) & (ts > 0.0) & (ts < t_max * adet);
+    if (!ok) {
+        return 0;
+    }
+    const double t = ts / adet;
     if (!(t > 0.0 && t < t_max)) {
         return 0;
     }

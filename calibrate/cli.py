@@ -1,0 +1,309 @@
+"""The `calibrate` command line.
+
+Every verb works with no arguments (on the built-in scenes), takes ``--json``
+(machine-readable output on stdout, nothing else there), shows progress on
+stderr for anything slow, and writes files atomically.  A user mistake prints
+one line ``calibrate: error: ...`` and exits with status 2; Ctrl-C exits 130.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+from ._io import UserError
+
+EXIT_USER_ERROR = 2
+EXIT_FIT_FAILED = 3
+EXIT_INTERRUPTED = 130
+DEFAULT_CALIBRATION = "calibration.json"
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse whose errors are one line and exit 2, like every other user mistake."""
+
+    def error(self, message):
+        raise UserError(message)
+
+
+#: Width of tables when the output is not a terminal (a file or a pipe).
+PIPE_WIDTH = 120
+
+
+def _console(stderr: bool = False):
+    """Reports go to stdout (tables) or stderr (progress, warnings); wide when piped."""
+    from rich.console import Console
+
+    stream = sys.stderr if stderr else sys.stdout
+    return Console(file=stream, highlight=False, width=None if stream.isatty() else PIPE_WIDTH)
+
+
+class _Progress:
+    """A rich progress bar on stderr, fed by ``progress(done, total, label)`` callbacks."""
+
+    def __init__(self, enabled: bool, description: str):
+        self.enabled = enabled
+        self.description = description
+        self._bar = None
+        self._task = None
+
+    def __enter__(self):
+        if self.enabled:
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+            self._bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                                 TimeElapsedColumn(), TextColumn("{task.fields[label]}"), console=_console(stderr=True),
+                                 transient=True)
+            self._bar.__enter__()
+            self._task = self._bar.add_task(self.description, total=None, label="")
+        return self
+
+    def __call__(self, done: int, total: int, label: str = "") -> None:
+        if self._bar is not None:
+            self._bar.update(self._task, completed=done, total=total or None, label=label[:48])
+
+    def status(self, text: str) -> None:
+        if self._bar is not None:
+            self._bar.update(self._task, description=text[:60])
+
+    def __exit__(self, *exc):
+        if self._bar is not None:
+            self._bar.__exit__(*exc)
+
+
+def _positive_float(text: str) -> float:
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not (math.isfinite(x) and x > 0):
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+    return x
+
+
+def _print_json(obj) -> None:
+    sys.stdout.write(json.dumps(obj, indent=2, allow_nan=False) + "\n")
+
+
+def _fmt_est(est) -> tuple[str, str, str]:
+    if est is None:
+        return ("-", "-", "-")
+    return (f"{est['median']:.4g}", f"[{est['ci68'][0]:.4g}, {est['ci68'][1]:.4g}]" if "ci68" in est else "-",
+            f"[{est['ci95'][0]:.4g}, {est['ci95'][1]:.4g}]")
+
+
+CONSTANT_LABELS = [("t_setup_ns", "T_setup (ns/ray)"), ("t_step_ns", "T_step (ns/cell)"),
+                   ("t_int_ns", "T_int (ns/test)"), ("t_sub_ns", "T_sub (ns/subgrid)"),
+                   ("ratio", "r = T_int/T_step")]
+
+
+def _constants_table(cal: dict, title: str):
+    from rich.table import Table
+
+    table = Table(title=title)
+    table.add_column("constant")
+    table.add_column("median", justify="right")
+    table.add_column("68% interval", justify="right")
+    table.add_column("95% interval", justify="right")
+    table.add_column("isolated (95%)", justify="right")
+    iso = cal.get("isolated") or {}
+    for key, label in CONSTANT_LABELS:
+        med, c68, c95 = _fmt_est(cal["constants"].get(key))
+        i = iso.get(key)
+        iso_txt = f"{i['median']:.4g} {_fmt_est(i)[2]}" if i else "-"
+        table.add_row(label, med, c68, c95, iso_txt)
+    return table
+
+
+# -- verbs -------------------------------------------------------------------------
+
+def cmd_run(args) -> int:
+    from .run import run_calibration
+
+    out = Path(args.out)
+    console = _console()
+    t0 = time.monotonic()
+    with _Progress(not args.quiet, "measuring") as bar:
+        result = run_calibration(out, budget_s=args.budget, target_rel_width=args.target_rel_width,
+                                 intersector=args.intersector, seed=args.seed, resume=args.resume,
+                                 progress=bar, status=bar.status)
+    cal = result.calibration
+    if args.json:
+        _print_json(dict(constants=cal["constants"], wall_s=result.wall_s, holdout_mare=result.holdout_mare,
+                         ratio_rel_width=result.ratio_rel_width, out=str(out)))
+        return 0
+    console.print(_constants_table(cal, f"calibration of this host ({cal['meta']['intersector']} intersector)"))
+    r = cal["constants"]["ratio"]
+    half = 0.5 * (r["ci95"][1] - r["ci95"][0]) / r["median"]
+    console.print(f"r = T_int/T_step = {r['median']:.3f}, 95% interval [{r['ci95'][0]:.3f}, {r['ci95'][1]:.3f}] "
+                  f"(half-width {100 * half:.1f}% of the median)")
+    n_held = sum(1 for m in cal["measurements"] if m.get("held_back"))
+    console.print(f"held-back configurations ({n_held}): median absolute relative error of predicted batch "
+                  f"times {100 * result.holdout_mare:.1f}%")
+    console.print(f"wall time {time.monotonic() - t0:.1f} s; written to {out}")
+    for w in result.warnings[:10]:
+        _console(stderr=True).print(f"[yellow]warning:[/yellow] {w}")
+    if len(result.warnings) > 10:
+        _console(stderr=True).print(f"[yellow]... and {len(result.warnings) - 10} more warnings in the file's "
+                                    "measurements[/yellow]")
+    return 0
+
+
+def cmd_fit(args) -> int:
+    from . import calfile
+
+    src = Path(args.file)
+    cal = calfile.load(src)
+    with _Progress(not args.quiet, "fitting") as _:
+        new = calfile.refit(cal, seed=args.seed)
+    out = Path(args.out) if args.out else src
+    calfile.save(out, new)
+    if args.json:
+        _print_json(dict(constants=new["constants"], out=str(out)))
+    else:
+        _console().print(_constants_table(new, f"re-fit of {src.name}"))
+        _console().print(f"written to {out}")
+    return 0
+
+
+def cmd_show(args) -> int:
+    from . import calfile
+
+    cal = calfile.load(Path(args.file))
+    if args.plot:
+        from .plots import calibration_plots
+
+        written = calibration_plots(cal, Path(args.plot))
+    else:
+        written = []
+    if args.json:
+        _print_json(dict(constants=cal["constants"], isolated=cal.get("isolated", {}),
+                         diagnostics=cal["diagnostics"], meta=cal.get("meta", {}), plots=[str(p) for p in written]))
+        return 0
+    console = _console()
+    console.print(_constants_table(cal, f"{args.file}"))
+    fp = cal["fingerprint"]
+    console.print(f"host: {fp.get('cpu_model')}, {fp.get('logical_cores')} cores, governor {fp.get('governor')}, "
+                  f"measured {fp.get('date_utc')}")
+    meta = cal.get("meta", {})
+    if "holdout_mare" in meta:
+        console.print(f"held-back median absolute relative error: {100 * meta['holdout_mare']:.1f}%")
+    d = cal["diagnostics"]
+    console.print(f"posterior: {d.get('n_steps')} steps, acceptance {d.get('acceptance', float('nan')):.2f}, "
+                  f"converged {d.get('converged')}")
+    for p in written:
+        console.print(f"plot written to {p}")
+    return 0
+
+
+def cmd_scenes(args) -> int:
+    from ._grid import Scene
+    from .scenes import BUILTIN
+
+    rows = []
+    for name, (description, _) in BUILTIN.items():
+        scene = Scene.builtin(name)
+        st = scene.stats
+        rows.append(dict(name=name, description=description, triangles=scene.n_triangles,
+                         box=[float(x) for x in scene.box_hi - scene.box_lo], k=float(st.k),
+                         aspect_median=float(st.aspect_median), aspect_p95=float(st.aspect_p95),
+                         watertight=bool(st.watertight), scene_class=_scene_class(st)))
+    if args.json:
+        _print_json(rows)
+        return 0
+    from rich.table import Table
+
+    table = Table(title="built-in scenes (use a name wherever a mesh file is accepted)")
+    for col in ("name", "triangles", "box", "k", "AR median / p95", "watertight", "class"):
+        table.add_column(col)
+    for r in rows:
+        table.add_row(r["name"], f"{r['triangles']:,}", " x ".join(f"{x:.3g}" for x in r["box"]), f"{r['k']:.2f}",
+                      f"{r['aspect_median']:.1f} / {r['aspect_p95']:.1f}", "yes" if r["watertight"] else "no",
+                      r["scene_class"])
+    _console().print(table)
+    return 0
+
+
+def _scene_class(stats) -> str:
+    from models.stats import scene_class
+
+    c = scene_class(stats)
+    return c[0] if isinstance(c, tuple) else str(c)
+
+
+# -- parser ------------------------------------------------------------------------
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="calibrate", description="Measure this host's grid ray-tracing costs and predict optimal "
+                                              "grid resolutions.")
+    sub = p.add_subparsers(dest="verb", parser_class=_Parser)
+
+    def verb(name, help_text):
+        sp = sub.add_parser(name, help=help_text, description=help_text)
+        sp.add_argument("--json", action="store_true", help="machine-readable output on stdout")
+        sp.add_argument("--quiet", action="store_true", help="no progress bar")
+        return sp
+
+    sp = verb("run", "measure T_setup, T_step, T_int and T_sub on this host and fit them")
+    sp.add_argument("--budget", type=_positive_float, default=60.0, metavar="SECONDS",
+                    help="wall-clock budget (default 60)")
+    sp.add_argument("--target-rel-width", type=_positive_float, default=0.06, metavar="W",
+                    help="stop once r's 95%% interval, relative to its median, is narrower than W (default 0.06)")
+    sp.add_argument("--out", default=DEFAULT_CALIBRATION, metavar="FILE", help="calibration file to write")
+    sp.add_argument("--intersector", default="watertight", choices=["watertight", "moller-trumbore"])
+    sp.add_argument("--seed", type=int, default=0)
+    sp.add_argument("--resume", action="store_true", help="continue an interrupted run from FILE.partial")
+    sp.set_defaults(func=cmd_run)
+
+    sp = verb("fit", "re-fit a calibration file's stored measurements without measuring again")
+    sp.add_argument("file", nargs="?", default=DEFAULT_CALIBRATION)
+    sp.add_argument("--out", metavar="FILE", help="write here instead of replacing FILE")
+    sp.add_argument("--seed", type=int, default=0)
+    sp.set_defaults(func=cmd_fit)
+
+    sp = verb("show", "print a calibration's constants; --plot writes a corner plot and residuals")
+    sp.add_argument("file", nargs="?", default=DEFAULT_CALIBRATION)
+    sp.add_argument("--plot", metavar="PREFIX", help="write PREFIX-corner.png and PREFIX-residuals.png")
+    sp.set_defaults(func=cmd_show)
+
+    sp = verb("scenes", "list the built-in scenes with their statistics")
+    sp.set_defaults(func=cmd_scenes)
+    return p
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+        if args.verb is None:
+            parser.print_help(sys.stderr)
+            return EXIT_USER_ERROR
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt as exc:
+        kept = getattr(exc, "measurements", None)
+        extra = f"; {len(kept)} configurations' values kept: continue with --resume" if kept else ""
+        print(f"calibrate: interrupted{extra}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except (UserError, ValueError, OSError) as exc:
+        print(f"calibrate: error: {_one_line(exc)}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except Exception as exc:  # a fit that cannot converge, and anything unforeseen: one line, not a traceback
+        from .fit import ConvergenceError
+
+        if isinstance(exc, ConvergenceError):
+            print(f"calibrate: fit failed: {_one_line(exc)}", file=sys.stderr)
+            return EXIT_FIT_FAILED
+        raise
+
+
+def _one_line(exc) -> str:
+    text = str(exc) or type(exc).__name__
+    return " ".join(text.split())
+
+
+if __name__ == "__main__":
+    sys.exit(main())

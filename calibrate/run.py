@@ -1,0 +1,280 @@
+"""`calibrate run`: measure this host's grid costs and fit them.
+
+The run builds every configuration of :mod:`calibrate.suites` (isolating and
+in-context, with exact counts from the instrumented twin), times them with
+:func:`calibrate.protocol.measure` in interleaved rounds, and fits the
+in-context batch times with :func:`calibrate.fit.fit`.  A seeded fifth of the
+in-context configurations is held back from the fit; the fitted constants
+predict their batch times and the median absolute relative error is reported.
+
+Measuring proceeds in stages of rounds.  After each stage the in-context
+measurements are fitted; with a target relative width of r's 95% interval,
+measuring stops once the interval is narrower, or when the time budget is
+spent.  Every stage's raw values are written to ``<out>.partial`` atomically;
+an interrupted run keeps them and ``calibrate run --resume`` continues.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from . import calfile, suites
+from . import fit as _fit
+from ._io import UserError, atomic_write_text
+from ._grid import intersector_code
+from .host import fingerprint
+from .protocol import Measurement, MeasurementInterrupted, measure, pin_to_one_core
+
+#: Default wall-clock budget of a run, seconds.
+DEFAULT_BUDGET_S = 60.0
+#: Default target: full width of r's 95% interval relative to its median.
+DEFAULT_TARGET_REL_WIDTH = 0.06
+#: Rounds measured before the first fit, and added by each later stage.
+FIRST_ROUNDS = 5
+STAGE_ROUNDS = 4
+#: Minimum duration of one timed value, ns (pyperf uses 100 ms; batches here are uniform).
+MIN_VALUE_NS = 10_000_000
+#: Warm-up values discarded per configuration and stage.
+WARMUPS = 1
+#: Fraction of in-context configurations held back from the fit to test its predictions.
+HOLDOUT_FRACTION = 0.2
+#: Share of the budget kept for fitting after the last stage.
+FIT_RESERVE_S = 6.0
+#: Constants whose in-context fit borrows a prior from the isolating suites: set-up
+#: and subgrid entry are a few per cent of a real batch, too little for the batches
+#: alone to pin them; the isolating suites measure them directly.
+PRIOR_FROM_ISOLATED = ("t_setup_ns", "t_sub_ns")
+#: Width (log units) of those priors: lets the in-context data move them by tens of per cent.
+ISOLATED_PRIOR_SIGMA_LOG = 0.3
+#: Partial-file format marker.
+PARTIAL_FORMAT = "gridcal-partial-run"
+PARTIAL_VERSION = 1
+
+
+@dataclass
+class RunResult:
+    calibration: dict
+    wall_s: float
+    holdout_mare: float
+    ratio_rel_width: float
+    warnings: list
+
+
+def partial_path(out: Path) -> Path:
+    return out.with_name(out.name + ".partial")
+
+
+def _save_partial(path: Path, seed: int, intersector: str, configs, timings: dict) -> None:
+    data = dict(format=PARTIAL_FORMAT, version=PARTIAL_VERSION, seed=seed, intersector=intersector,
+                configs=[c.name for c in configs],
+                measurements={k: m.to_dict() for k, m in timings.items()})
+    atomic_write_text(path, json.dumps(data))
+
+
+def _load_partial(path: Path, seed: int, intersector: str, configs) -> dict:
+    if not path.exists():
+        raise UserError(f"{path}: no interrupted run to resume (run without --resume to start one)")
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise UserError(f"{path}: cannot read the interrupted run ({exc})") from None
+    if not isinstance(data, dict) or data.get("format") != PARTIAL_FORMAT:
+        raise UserError(f"{path}: not a gridcal partial run")
+    if data.get("version") != PARTIAL_VERSION:
+        raise UserError(f"{path}: partial-run version {data.get('version')!r} is not {PARTIAL_VERSION}")
+    if data.get("intersector") != intersector or data.get("seed") != seed:
+        raise UserError(f"{path}: was measured with intersector {data.get('intersector')!r} and seed "
+                        f"{data.get('seed')!r}; resume with the same --intersector and --seed")
+    if data.get("configs") != [c.name for c in configs]:
+        raise UserError(f"{path}: its configurations differ from this version's suites; start a new run")
+    out = {}
+    for name, rec in data.get("measurements", {}).items():
+        try:
+            out[name] = Measurement.from_dict(rec)
+        except ValueError as exc:
+            raise UserError(f"{path}: measurement {name!r}: {exc}") from None
+    return out
+
+
+def holdout_names(configs, seed: int) -> set:
+    """A seeded fifth of the in-context configurations, held back from the fit."""
+    ctx = [c.name for c in configs if c.kind == "in_context"]
+    rng = np.random.default_rng(seed + 7919)
+    k = max(1, int(round(HOLDOUT_FRACTION * len(ctx))))
+    return set(np.array(ctx)[rng.choice(len(ctx), size=k, replace=False)].tolist())
+
+
+def records(configs, timings: dict, held: set) -> list:
+    out = []
+    for c in configs:
+        rec = c.record()
+        m = timings.get(c.name)
+        rec["values_ns"] = list(m.values_ns) if m else []
+        rec["loops"] = int(m.loops) if m else 0
+        rec["warnings"] = m.warnings if m else []
+        rec["held_back"] = c.name in held
+        out.append(rec)
+    return out
+
+
+def _fit_stage(recs, seed, isolated):
+    design = calfile.design_from_measurements(recs, "in_context")
+    priors = {}
+    for name in PRIOR_FROM_ISOLATED:
+        est = (isolated or {}).get(name)
+        if est:
+            priors[name] = (est["median"], ISOLATED_PRIOR_SIGMA_LOG)
+    return _fit.fit(design, seed=seed, priors=priors)
+
+
+def _rel_width(result) -> float:
+    r = result.constants["ratio"]
+    return (r["ci95"][1] - r["ci95"][0]) / r["median"]
+
+
+def _suite_design(recs, suite, fold_steps_into_rays=False):
+    chosen = [r for r in recs if r["kind"] == "isolated" and r["suite"] == suite and r["values_ns"]]
+    if not chosen:
+        raise ValueError(f"no {suite} measurements")
+    design = {k: np.array([float(r[k]) for r in chosen]) for k in ("rays", "steps", "tests", "subgrids")}
+    if fold_steps_into_rays:  # one cell: every ray steps once, so steps duplicate rays
+        design["steps"] = np.zeros_like(design["steps"])
+    design["times_ns"] = [list(r["values_ns"]) for r in chosen]
+    return design, chosen
+
+
+def _isolated_fit(recs, seed):
+    """First estimates from the isolating suites, each fitted on its own.
+
+    - empty grids: batch = rays*T_setup + steps*T_step        -> T_setup, T_step
+    - one cell:    batch = rays*(T_setup + T_step) + tests*T_int -> T_int
+    - subgrids:    the same grid with and without a 1x1x1 subgrid in every cell;
+                   each entry adds one cell step and one subgrid entry, so
+                   T_sub = (time(all) - time(none)) / subgrids - T_step (paired, per side).
+    Returns (constants dict in the calibration's form, warning or None).
+    """
+    out, problems = {}, []
+    try:
+        design, _ = _suite_design(recs, "empty")
+        res = _fit.fit(design, seed=seed, required=("rays", "steps"))
+        out["t_setup_ns"] = calfile.constants_json(res)["t_setup_ns"]
+        out["t_step_ns"] = calfile.constants_json(res)["t_step_ns"]
+    except (ValueError, _fit.ConvergenceError) as exc:
+        problems.append(f"empty-grid suite: {exc}")
+    try:
+        design, _ = _suite_design(recs, "cell", fold_steps_into_rays=True)
+        res = _fit.fit(design, seed=seed, required=("rays", "tests"))
+        out["t_int_ns"] = calfile.constants_json(res)["t_int_ns"]
+    except (ValueError, _fit.ConvergenceError) as exc:
+        problems.append(f"one-cell suite: {exc}")
+    sub = [r for r in recs if r["kind"] == "isolated" and r["suite"] == "subgrid" and r["values_ns"]]
+    t_step = out.get("t_step_ns")
+    if t_step and sub:
+        by_res = {}
+        for r in sub:
+            by_res.setdefault(r["resolution"].split(" / ")[0], {})["all" if r["subgrids"] else "none"] = r
+        diffs = [(float(np.median(p["all"]["values_ns"])) - float(np.median(p["none"]["values_ns"])))
+                 / p["all"]["subgrids"] - t_step["median"] for p in by_res.values() if len(p) == 2]
+        if diffs and min(diffs) > 0:
+            d = np.array(diffs)
+            out["t_sub_ns"] = {"median": float(np.median(d)), "ci68": [float(d.min()), float(d.max())],
+                               "ci95": [float(d.min()), float(d.max())]}
+        elif diffs:
+            problems.append("subgrid suite: entering a subgrid costs no more than a cell step here")
+    if "t_int_ns" in out and "t_step_ns" in out:
+        r = out["t_int_ns"]["median"] / out["t_step_ns"]["median"]
+        lo = out["t_int_ns"]["ci95"][0] / out["t_step_ns"]["ci95"][1]
+        hi = out["t_int_ns"]["ci95"][1] / out["t_step_ns"]["ci95"][0]
+        out["ratio"] = {"median": r, "ci68": [lo, hi], "ci95": [lo, hi]}
+    return out, ("isolated: " + "; ".join(problems)) if problems else None
+
+
+def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
+                    target_rel_width: float | None = DEFAULT_TARGET_REL_WIDTH,
+                    intersector: str = "watertight", seed: int = 0, resume: bool = False,
+                    progress=None, status=None) -> RunResult:
+    """Measure, fit, validate on held-back configurations, and save ``out`` atomically.
+
+    progress(done, total, label) reports measuring; status(text) reports stages.
+    Raises UserError for bad arguments, MeasurementInterrupted (after saving the
+    partial file) on Ctrl-C, and fit errors when the data cannot be fitted.
+    """
+    if not (isinstance(budget_s, (int, float)) and math.isfinite(budget_s) and budget_s > 0):
+        raise UserError(f"--budget must be a positive number of seconds, got {budget_s!r}")
+    if target_rel_width is not None and not (math.isfinite(target_rel_width) and target_rel_width > 0):
+        raise UserError(f"--target-rel-width must be a positive number, got {target_rel_width!r}")
+    intersector_code(intersector)  # validates the name
+    status = status or (lambda text: None)
+    t_start = time.monotonic()
+    deadline = t_start + budget_s
+    part = partial_path(out)
+    warnings: list = []
+
+    with pin_to_one_core() as pin:
+        status("building grids and counting work with the instrumented twin")
+        configs = suites.isolated_configs(intersector, seed) + suites.context_configs(intersector, seed)
+        timings = _load_partial(part, seed, intersector, configs) if resume else {}
+        held = holdout_names(configs, seed)
+        runs = {c.name: c.run for c in configs}
+        rng = np.random.default_rng(seed)
+        rounds = max([FIRST_ROUNDS] + [len(m.values_ns) for m in timings.values()])
+        result = None
+        stage = 0
+        while True:
+            stage += 1
+            status(f"measuring stage {stage}: {len(configs)} configurations to {rounds} values each")
+            try:
+                measure(runs, rng=rng, rounds=rounds, warmups=WARMUPS, min_value_ns=MIN_VALUE_NS,
+                        progress=progress, deadline=deadline - FIT_RESERVE_S, into=timings)
+            except MeasurementInterrupted:
+                _save_partial(part, seed, intersector, configs, timings)
+                raise
+            _save_partial(part, seed, intersector, configs, timings)
+            recs = records(configs, timings, held)
+            status("fitting")
+            isolated, iso_warning = _isolated_fit(recs, seed)
+            try:
+                result = _fit_stage(recs, seed, isolated)
+            except (ValueError, _fit.ConvergenceError) as exc:
+                if time.monotonic() < deadline - FIT_RESERVE_S:
+                    rounds += STAGE_ROUNDS
+                    continue
+                raise UserError(f"the measurements could not be fitted within the budget: {exc}") from None
+            width = _rel_width(result)
+            enough = target_rel_width is None or width <= target_rel_width
+            if enough or time.monotonic() >= deadline - FIT_RESERVE_S:
+                if not enough:
+                    warnings.append(f"budget spent: r's 95% interval is {100 * width:.1f}% of its median wide, "
+                                    f"target {100 * target_rel_width:.1f}%")
+                break
+            rounds += STAGE_ROUNDS
+
+        design_held = calfile.design_from_measurements(
+            [r for r in recs if r["held_back"]], "in_context", include_held_back=True)
+        mare = _fit.holdout_error(result, design_held)
+        if iso_warning:
+            warnings.append(iso_warning)
+        for r in recs:
+            for w in r["warnings"]:
+                warnings.append(f"{r['name']}: {w}")
+        wall = time.monotonic() - t_start
+        meta = dict(tool="gridcal", budget_s=budget_s, target_rel_width=target_rel_width, seed=seed,
+                    intersector=intersector, wall_s=wall, stages=stage, rounds=rounds,
+                    holdout_fraction=HOLDOUT_FRACTION, holdout_mare=mare,
+                    ratio_rel_width=_rel_width(result), pinned_core=pin.core, pin_note=pin.note,
+                    rays_per_batch=suites.RAYS_PER_BATCH, min_value_ns=MIN_VALUE_NS)
+        from ._kernels import CFLAGS
+
+        cal = calfile.from_fit(result, fingerprint=fingerprint(extra={"kernel_build": CFLAGS}),
+                               measurements=recs, isolated=isolated, meta=meta)
+        calfile.save(out, cal)
+        if part.exists():
+            part.unlink()
+    return RunResult(calibration=cal, wall_s=wall, holdout_mare=mare, ratio_rel_width=_rel_width(result),
+                     warnings=warnings)

@@ -1,0 +1,187 @@
+"""The microbenchmark suites: configurations to time, with their exact counts.
+
+A configuration is one grid and one batch of rays.  Its counts (rays, cells
+stepped, triangle tests, subgrids entered; batch totals) come from the
+instrumented twin on exactly the rays the timed twin will trace; its time
+comes later from :func:`calibrate.protocol.measure`.
+
+Isolating suites (first estimates, reported beside the in-context fit):
+- ``empty``: grids with no triangles, m x m x m for growing m: T_setup and T_step;
+- ``cell``: one cell holding k triangles, rays that miss them and rays aimed
+  at them: T_int;
+- ``subgrid``: the same top grid with and without a 1x1x1 subgrid in every
+  cell: T_sub.
+
+In-context suite: real traversals of built-in scenes at resolutions from
+coarse to fine (uniform, and nested of depth 2 and 3) under isotropic and
+camera rays.  The exported constants come from fitting this suite.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from ._grid import Grid, Scene, empty_grid, resolution_for_cells
+from .rays import camera, isotropic
+from .scenes import scattered_compact
+
+#: Rays per batch in every configuration.
+RAYS_PER_BATCH = 2048
+#: Empty-grid resolutions (cells per axis) of the isolating step suite; at most 32^3
+#: cells (256 KiB), so the cells stay in cache and T_step is the step itself.
+EMPTY_GRID_SIDES = (1, 2, 3, 4, 6, 8, 12, 16, 24, 32)
+#: Triangles in the single cell of the isolating intersection suite.
+CELL_TRIANGLE_COUNTS = (1, 4, 16, 64, 256)
+#: Top-level sides of the isolating subgrid suite.
+SUBGRID_SIDES = (2, 4, 8, 16)
+#: Built-in scenes of the in-context suite.
+CONTEXT_SCENES = ("sphere", "cylinder1996", "scattered-compact", "scattered-skinny", "cylinder196")
+#: Total cells as multiples of N for the in-context uniform grids (coarse to fine).
+CONTEXT_CELLS_PER_TRIANGLE = (1 / 2, 1.0, 2.0, 4.0, 8.0)
+#: Extra, finer multiples for scenes of long skinny triangles, whose optimum is O(N^1.5) cells.
+CONTEXT_SKINNY_EXTRA = (16.0, 32.0)
+#: Nesting depths of the in-context nested grids.
+CONTEXT_LEVELS = (2, 3)
+#: Ray sets of the in-context suite.
+CONTEXT_RAY_SETS = ("isotropic", "camera")
+#: Cap on a configuration's cells, so no suite grid strains memory.
+MAX_SUITE_CELLS = 4_000_000
+
+
+@dataclass
+class Config:
+    """One timed configuration: a grid, a batch of rays, and the batch's exact counts."""
+
+    name: str
+    kind: str  # "isolated" or "in_context"
+    suite: str  # "empty", "cell", "subgrid" or "context"
+    scene: str
+    resolution: str
+    intersector: str
+    rays: int
+    steps: int
+    tests: int
+    subgrids: int
+    run: Callable = field(repr=False)
+    ray_set: str = ""
+
+    def record(self) -> dict:
+        """The JSON record of this configuration (without timings)."""
+        return dict(name=self.name, kind=self.kind, suite=self.suite, scene=self.scene,
+                    resolution=self.resolution, intersector=self.intersector, ray_set=self.ray_set,
+                    rays=int(self.rays), steps=int(self.steps), tests=int(self.tests),
+                    subgrids=int(self.subgrids))
+
+
+def _res_label(res) -> str:
+    return "x".join(str(int(x)) for x in res)
+
+
+def _config(name, kind, suite, scene_name, res_label, intersector, grid: Grid, o, d, ray_set) -> Config:
+    steps, tests, subgrids = grid.count(o, d)
+    return Config(name=name, kind=kind, suite=suite, scene=scene_name, resolution=res_label,
+                  intersector=intersector, rays=int(o.shape[0]), steps=int(steps.sum(dtype=np.int64)),
+                  tests=int(tests.sum(dtype=np.int64)), subgrids=int(subgrids.sum(dtype=np.int64)),
+                  run=grid.timed_batch(o, d), ray_set=ray_set)
+
+
+def isolated_configs(intersector: str, seed: int = 0) -> list[Config]:
+    """The isolating suites for one intersector (deterministic given the seed)."""
+    out = []
+    lo, hi = np.zeros(3), np.ones(3)
+    o, d = isotropic(lo, hi, RAYS_PER_BATCH, seed)
+    for m in EMPTY_GRID_SIDES:
+        g = empty_grid(lo, hi, (m, m, m), intersector)
+        out.append(_config(f"empty {m}^3", "isolated", "empty", "empty", _res_label((m, m, m)), intersector,
+                           g, o, d, "isotropic"))
+    # one cell, k small triangles; isotropic rays mostly miss them, aimed rays hit one
+    for k in CELL_TRIANGLE_COUNTS:
+        v, f = scattered_compact(k, seed=seed + 7 + k)
+        scene = Scene(v, f, name=f"cell {k}")
+        g = Grid.uniform(scene, (1, 1, 1), intersector)
+        oi, di = isotropic(scene.box_lo, scene.box_hi, RAYS_PER_BATCH, seed + 1)
+        out.append(_config(f"cell k={k} miss", "isolated", "cell", scene.name, "1x1x1", intersector, g, oi, di,
+                           "isotropic"))
+        centroids = v[f].mean(axis=1)
+        rng = np.random.default_rng(seed + 11 + k)
+        target = centroids[rng.integers(0, k, RAYS_PER_BATCH)]
+        oh, _ = isotropic(scene.box_lo, scene.box_hi, RAYS_PER_BATCH, seed + 2)
+        dh = target - oh
+        dh /= np.linalg.norm(dh, axis=1, keepdims=True)
+        out.append(_config(f"cell k={k} hit", "isolated", "cell", scene.name, "1x1x1", intersector, g, oh, dh,
+                           "aimed"))
+    # the same top grid without and with a 1x1x1 subgrid in every cell
+    v, f = scattered_compact(64, seed=seed + 3)
+    scene = Scene(v, f, name="subgrid probe")
+    os_, ds = isotropic(scene.box_lo, scene.box_hi, RAYS_PER_BATCH, seed + 4)
+    for m in SUBGRID_SIDES:
+        res = (m, m, m)
+        plain = Grid.uniform(scene, res, intersector)
+        out.append(_config(f"subgrid {m}^3 none", "isolated", "subgrid", scene.name, _res_label(res), intersector,
+                           plain, os_, ds, "isotropic"))
+        ones = np.ones((m ** 3, 3), dtype=np.int32)
+        nested = Grid.nested(scene, levels=2, resolution=res, subgrid_resolutions=ones, intersector=intersector)
+        out.append(_config(f"subgrid {m}^3 all", "isolated", "subgrid", scene.name,
+                           _res_label(res) + " / 1x1x1", intersector, nested, os_, ds, "isotropic"))
+    return out
+
+
+def _rays(scene: Scene, ray_set: str, seed: int):
+    if ray_set == "isotropic":
+        return isotropic(scene.box_lo, scene.box_hi, RAYS_PER_BATCH, seed)
+    if ray_set == "camera":
+        return camera(scene.box_lo, scene.box_hi, RAYS_PER_BATCH, seed)
+    raise ValueError(f"unknown ray set {ray_set!r}")
+
+
+def context_configs(intersector: str, seed: int = 0, scenes=CONTEXT_SCENES) -> list[Config]:
+    """The in-context suite: built-in scenes x resolutions x ray sets."""
+    out = []
+    for si, name in enumerate(scenes):
+        scene = Scene.builtin(name)
+        ext = scene.box_hi - scene.box_lo
+        n = scene.n_triangles
+        multiples = list(CONTEXT_CELLS_PER_TRIANGLE)
+        if name.startswith("cylinder") or name == "scattered-skinny":
+            multiples += list(CONTEXT_SKINNY_EXTRA)
+        grids = []
+        for c in multiples:
+            res = resolution_for_cells(min(c * n, MAX_SUITE_CELLS), ext)
+            grids.append((_res_label(res), lambda res=res: Grid.uniform(scene, res, intersector)))
+        for levels in CONTEXT_LEVELS:
+            grids.append((f"L{levels}", lambda levels=levels: Grid.nested(scene, levels=levels,
+                                                                         intersector=intersector)))
+        for ri, ray_set in enumerate(CONTEXT_RAY_SETS):
+            o, d = _rays(scene, ray_set, seed + 100 * si + ri)
+            for label, build in grids:
+                grid = build()
+                if label.startswith("L"):
+                    label = f"{label} {_res_label(grid.resolution)}"
+                out.append(_config(f"{name} {label} {ray_set}", "in_context", "context", name, label, intersector,
+                                   grid, o, d, ray_set))
+    return out
+
+
+def design(configs: list[Config], timings: dict) -> dict:
+    """The fit's design from configurations and their Measurements (name -> Measurement)."""
+    have = [c for c in configs if c.name in timings and timings[c.name].values_ns]
+    return dict(
+        rays=np.array([c.rays for c in have], dtype=np.float64),
+        steps=np.array([c.steps for c in have], dtype=np.float64),
+        tests=np.array([c.tests for c in have], dtype=np.float64),
+        subgrids=np.array([c.subgrids for c in have], dtype=np.float64),
+        times_ns=[np.asarray(timings[c.name].values_ns, dtype=np.float64) for c in have],
+    ), have
+
+
+def expected_seconds(n_configs: int, rounds: int, min_value_ns: float, warmups: int) -> float:
+    """Rough measuring time: loop calibration (~2 values) + warm-ups + rounds, per configuration."""
+    return n_configs * (2 + warmups + rounds) * min_value_ns * 1e-9 * 1.3
+
+
+def fmt_ns(x: float) -> str:
+    return f"{x:.3g}" if math.isfinite(x) else "nan"
