@@ -68,6 +68,16 @@ static gc_grid *get_grid(PyObject *cap)
     return PyCapsule_GetPointer(cap, CAPSULE_NAME);
 }
 
+/* The grid of a call whose only argument is a grid capsule. */
+static gc_grid *grid_arg(PyObject *args)
+{
+    PyObject *cap;
+    if (!PyArg_ParseTuple(args, "O", &cap)) {
+        return NULL;
+    }
+    return get_grid(cap);
+}
+
 static int read_doubles(PyObject *seq, double *out, Py_ssize_t n, const char *what)
 {
     PyObject *fast = PySequence_Fast(seq, what);
@@ -182,11 +192,7 @@ static PyObject *py_build(PyObject *self, PyObject *args, PyObject *kw)
 static PyObject *py_info(PyObject *self, PyObject *args)
 {
     (void)self;
-    PyObject *cap;
-    if (!PyArg_ParseTuple(args, "O", &cap)) {
-        return NULL;
-    }
-    gc_grid *g = get_grid(cap);
+    gc_grid *g = grid_arg(args);
     if (!g) {
         return NULL;
     }
@@ -206,11 +212,7 @@ static PyObject *py_info(PyObject *self, PyObject *args)
 static PyObject *py_top_counts(PyObject *self, PyObject *args)
 {
     (void)self;
-    PyObject *cap;
-    if (!PyArg_ParseTuple(args, "O", &cap)) {
-        return NULL;
-    }
-    gc_grid *g = get_grid(cap);
+    gc_grid *g = grid_arg(args);
     if (!g) {
         return NULL;
     }

@@ -475,12 +475,19 @@ def refit(cal: Mapping, *, seed: int = 0, intersector: str | None = None, **fit_
     """Re-fit the constants from a calibration's stored in-context measurements.
 
     Returns a new validated calibration: ``constants``, ``samples`` and
-    ``diagnostics`` replaced, everything else kept. ``fit_kwargs`` go to
+    ``diagnostics`` replaced, everything else kept.  The priors recorded in
+    ``diagnostics.priors`` (from the isolating suites) are applied again. ``fit_kwargs`` go to
     :func:`calibrate.fit.fit` (e.g. ``max_steps``). Raises ValueError when the
     measurements cannot be fitted (see fit.fit).
     """
     cal = validate(_plain(cal))
     design = design_from_measurements(cal["measurements"], "in_context", intersector)
+    if "priors" not in fit_kwargs:  # the priors the original fit took from the isolating suites
+        stored = cal["diagnostics"].get("priors") or {}
+        try:
+            fit_kwargs["priors"] = {str(k): (float(v[0]), float(v[1])) for k, v in stored.items()}
+        except (TypeError, ValueError, IndexError):
+            raise UserError("diagnostics.priors: must map constant names to [median_ns, sigma_log]") from None
     result = _fit.fit(design, seed=seed, **fit_kwargs)
     return from_fit(
         result,

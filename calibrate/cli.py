@@ -272,6 +272,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     sp = verb("scenes", "list the built-in scenes with their statistics")
     sp.set_defaults(func=cmd_scenes)
+
+    from . import predict as _predict
+
+    _predict.add_parser(sub)
     return p
 
 

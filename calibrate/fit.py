@@ -530,6 +530,11 @@ def _least_squares_start(prep: PreparedDesign, lo: np.ndarray, hi: np.ndarray) -
     return np.append(log_t, tau)
 
 
+#: What an nlopt run may raise when it stops early (the best point seen is kept):
+#: roundoff, its generic failure (not a Python RuntimeError in every nlopt build).
+NLOPT_STOPS = tuple({nlopt.RoundoffLimited, RuntimeError, getattr(nlopt, "runtime_error", RuntimeError)})
+
+
 def _maximise(post: _LogPosterior, prep: PreparedDesign, seed: int) -> np.ndarray:
     """nlopt: bounded global search (GN_CRS2_LM) then L-BFGS polish; returns theta."""
     n = post.n_params + 1
@@ -558,7 +563,7 @@ def _maximise(post: _LogPosterior, prep: PreparedDesign, seed: int) -> np.ndarra
     glob.set_ftol_rel(LOCAL_FTOL_REL)
     try:
         glob.optimize(start)
-    except (nlopt.RoundoffLimited, RuntimeError):
+    except NLOPT_STOPS:
         pass
     for x0 in (best["x"], start):
         loc = nlopt.opt(nlopt.LD_LBFGS, n)
@@ -569,7 +574,7 @@ def _maximise(post: _LogPosterior, prep: PreparedDesign, seed: int) -> np.ndarra
         loc.set_ftol_rel(LOCAL_FTOL_REL)
         try:
             loc.optimize(np.asarray(x0, dtype=float))
-        except (nlopt.RoundoffLimited, RuntimeError):
+        except NLOPT_STOPS:
             pass  # the best point seen so far is kept by the objective
     if best["x"] is None or not np.isfinite(best["f"]):
         raise ValueError("the likelihood has no finite maximum for this design")

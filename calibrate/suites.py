@@ -48,6 +48,8 @@ CONTEXT_SKINNY_EXTRA = (16.0, 32.0)
 CONTEXT_LEVELS = (2, 3)
 #: Ray sets of the in-context suite.
 CONTEXT_RAY_SETS = ("isotropic", "camera")
+#: Camera rays drawn per ray kept (those missing the grid box are dropped).
+CAMERA_SURPLUS = 8
 #: Cap on a configuration's cells, so no suite grid strains memory.
 MAX_SUITE_CELLS = 4_000_000
 
@@ -130,11 +132,29 @@ def isolated_configs(intersector: str, seed: int = 0) -> list[Config]:
     return out
 
 
+def hits_box(o: np.ndarray, d: np.ndarray, lo, hi) -> np.ndarray:
+    """(n,) bool: which rays (t >= 0) meet the box [lo, hi] (slab test, numpy)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d
+        t1 = (np.asarray(lo) - o) * inv
+        t2 = (np.asarray(hi) - o) * inv
+    tn = np.nanmax(np.minimum(t1, t2), axis=1)
+    tf = np.nanmin(np.maximum(t1, t2), axis=1)
+    return (tf >= np.maximum(tn, 0.0))
+
+
 def _rays(scene: Scene, ray_set: str, seed: int):
+    """A batch of rays that all enter the grid, as the cost model assumes.
+
+    Isotropic lines through the box all do by construction; a camera framing
+    the box's bounding sphere also sees past an elongated box, so its rays are
+    drawn in surplus and those missing the box are dropped."""
     if ray_set == "isotropic":
         return isotropic(scene.box_lo, scene.box_hi, RAYS_PER_BATCH, seed)
     if ray_set == "camera":
-        return camera(scene.box_lo, scene.box_hi, RAYS_PER_BATCH, seed)
+        o, d = camera(scene.box_lo, scene.box_hi, CAMERA_SURPLUS * RAYS_PER_BATCH, seed)
+        keep = hits_box(o, d, scene.box_lo, scene.box_hi)
+        return o[keep][:RAYS_PER_BATCH], d[keep][:RAYS_PER_BATCH]
     raise ValueError(f"unknown ray set {ray_set!r}")
 
 

@@ -24,6 +24,13 @@
 #define GC_INLINE static inline
 #endif
 
+/* A hint to start loading memory that will be needed soon; nothing where unsupported. */
+#if defined(__GNUC__)
+#define GC_PREFETCH(p) __builtin_prefetch(p)
+#else
+#define GC_PREFETCH(p) ((void)(p))
+#endif
+
 typedef struct {
     double v0[3], v1[3], v2[3];
 } gc_tri; /* 72 bytes */

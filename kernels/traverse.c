@@ -87,7 +87,19 @@ static gc_status mail_open(const gc_grid *g, gc_mail *m, gc_mail **use, char *er
 #undef GC_TW_ISECT
 #undef GC_TW_NAME
 
-/* Trace rays [0, n) with the timed twin; returns the checksum of the results. */
+/* Store one ray's hit (as the mesh's face index) and return its share of the checksum. */
+static inline double record_hit(const gc_grid *g, const gc_hit *h, int64_t k, double *t_out, int32_t *prim_out)
+{
+    const int32_t id = h->prim >= 0 ? g->tri_id[h->prim] : -1;
+    if (t_out) {
+        t_out[k] = h->t;
+        prim_out[k] = id;
+    }
+    return (id >= 0) ? h->t + (double)id : -1.0;
+}
+
+/* Trace rays [0, n) with the timed twin; returns the checksum of the results.
+ * The intersector is chosen once, outside the loop. */
 static double trace_batch_timed(const gc_grid *g, int64_t n, const double *orig, const double *dir,
                                 double *t_out, int32_t *prim_out, gc_mail *mail)
 {
@@ -98,23 +110,13 @@ static double trace_batch_timed(const gc_grid *g, int64_t n, const double *orig,
         for (int64_t k = 0; k < n; ++k) {
             gc_ray_prepare(&r, orig + 3 * k, dir + 3 * k);
             trace_timed_wt(g, &r, &h, mail);
-            const int32_t id = h.prim >= 0 ? g->tri_id[h.prim] : -1;
-            if (t_out) {
-                t_out[k] = h.t;
-                prim_out[k] = id;
-            }
-            sum += (id >= 0) ? h.t + (double)id : -1.0;
+            sum += record_hit(g, &h, k, t_out, prim_out);
         }
     } else {
         for (int64_t k = 0; k < n; ++k) {
             gc_ray_prepare(&r, orig + 3 * k, dir + 3 * k);
             trace_timed_mt(g, &r, &h, mail);
-            const int32_t id = h.prim >= 0 ? g->tri_id[h.prim] : -1;
-            if (t_out) {
-                t_out[k] = h.t;
-                prim_out[k] = id;
-            }
-            sum += (id >= 0) ? h.t + (double)id : -1.0;
+            sum += record_hit(g, &h, k, t_out, prim_out);
         }
     }
     return sum;

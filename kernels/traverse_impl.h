@@ -63,6 +63,8 @@ static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *
     const int32_t ux = stride[0] > 0 ? 1 : -1, uy = stride[1] > 0 ? 1 : -1, uz = stride[2] > 0 ? 1 : -1;
     double tx = t_next[0], ty = t_next[1], tz = t_next[2];
     int64_t idx = (int64_t)gc_cell_index(nd, cx, cy, cz);
+    const int64_t first = (int64_t)nd->first_cell;
+    const int64_t end = first + axis_stride[2] * (int64_t)nd->n[2];
     double t_enter = ta;
     for (;;) {
         double t_axis = tx < ty ? tx : ty;
@@ -72,6 +74,23 @@ static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *
 #if GC_TW_COUNT
         cnt->steps++;
 #endif
+        {
+            /* The next cell along the ray, and the first of its triangles, start
+             * loading while this cell is tested: a cell's triangles lie at a place
+             * in memory nothing else predicts, and waiting for them made an
+             * occupied cell cost several empty ones. */
+            const int px = (tx <= ty) & (tx <= tz);
+            const int py = !px & (ty <= tz);
+            const int pz = !px & !py;
+            const int64_t next = idx + ((-(int64_t)px & stride[0]) | (-(int64_t)py & stride[1]) |
+                                        (-(int64_t)pz & stride[2]));
+            if (next >= first && next < end) {
+                const gc_cell nc = g->cells[next];
+                if (nc.count != GC_CELL_SUBGRID) {
+                    GC_PREFETCH(g->ref_tris + nc.begin);
+                }
+            }
+        }
         if (cell.count == GC_CELL_SUBGRID) {
 #if GC_TW_COUNT
             cnt->subgrids++;

@@ -1,0 +1,104 @@
+"""Pictures of a calibration: the posterior's corner plot and the fit's residuals.
+
+Written with matplotlib's Agg backend (no display needed), atomically: each
+figure is rendered to memory and then written with a temp file and a rename.
+"""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import numpy as np
+
+from . import calfile
+from ._io import atomic_write_bytes
+from .fit import predict_batch_times
+
+LABELS = {"t_setup_ns": "T_setup (ns)", "t_step_ns": "T_step (ns)", "t_int_ns": "T_int (ns)",
+          "t_sub_ns": "T_sub (ns)", "ratio": "r = T_int/T_step"}
+#: Figure resolution, dots per inch.
+DPI = 110
+
+
+def _save(fig, path: Path) -> Path:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=DPI, bbox_inches="tight")
+    atomic_write_bytes(path, buf.getvalue())
+    return path
+
+
+def corner(cal: dict, path: Path) -> Path:
+    """Pairwise scatter and marginal histograms of the posterior samples (constants and r)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    samples = calfile.samples_by_name(cal)
+    names = [n for n in ("t_setup_ns", "t_step_ns", "t_int_ns", "t_sub_ns", "ratio") if n in samples]
+    k = len(names)
+    fig, axes = plt.subplots(k, k, figsize=(2.2 * k, 2.2 * k), squeeze=False)
+    for i, yi in enumerate(names):
+        for j, xj in enumerate(names):
+            ax = axes[i, j]
+            if j > i:
+                ax.axis("off")
+                continue
+            if i == j:
+                ax.hist(samples[xj], bins=40, color="0.4")
+                lo, hi = np.percentile(samples[xj], [2.5, 97.5])
+                for v in (lo, np.median(samples[xj]), hi):
+                    ax.axvline(v, color="tab:red", lw=0.8)
+                ax.set_yticks([])
+            else:
+                ax.plot(samples[xj], samples[yi], ".", ms=1.5, alpha=0.3, color="0.2")
+            if i == k - 1:
+                ax.set_xlabel(LABELS[xj])
+            if j == 0 and i > 0:
+                ax.set_ylabel(LABELS[yi])
+    fig.suptitle("posterior of the in-context fit (lines: median and 95% interval)")
+    out = _save(fig, path)
+    plt.close(fig)
+    return out
+
+
+def residuals(cal: dict, path: Path) -> Path:
+    """Relative residual of every in-context configuration against its steps and tests per ray."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    recs = [m for m in cal["measurements"] if m["kind"] == "in_context" and m["values_ns"]]
+    design = calfile.design_from_measurements(recs, "in_context", include_held_back=True)
+    cols = cal["samples"]["columns"]
+    values = np.asarray(cal["samples"]["values"], dtype=float)
+    names = [c for c in cols if c != calfile.SCATTER_COLUMN]
+    pred = np.median(predict_batch_times(values[:, [cols.index(n) for n in names]], names, design), axis=0)
+    meas = np.array([np.median(m["values_ns"]) for m in recs])
+    rel = meas / pred - 1.0
+    held = np.array([bool(m.get("held_back")) for m in recs])
+    rays = np.array([m["rays"] for m in recs], dtype=float)
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
+    for ax, key, label in ((axes[0], "steps", "cells stepped per ray"), (axes[1], "tests", "triangle tests per ray")):
+        x = np.array([m[key] for m in recs], dtype=float) / rays
+        ax.plot(x[~held], 100 * rel[~held], "o", ms=4, label="fitted")
+        ax.plot(x[held], 100 * rel[held], "s", ms=5, mfc="none", color="tab:red", label="held back")
+        ax.axhline(0.0, color="0.5", lw=0.8)
+        ax.set_xscale("log")
+        ax.set_xlabel(label)
+    axes[0].set_ylabel("measured / predicted - 1 (%)")
+    axes[1].legend()
+    fig.suptitle("in-context batch times against the fitted model")
+    out = _save(fig, path)
+    plt.close(fig)
+    return out
+
+
+def calibration_plots(cal: dict, prefix: Path) -> list[Path]:
+    """Write PREFIX-corner.png and PREFIX-residuals.png; returns their paths."""
+    prefix = Path(prefix)
+    base = prefix.name[:-4] if prefix.suffix == ".png" else prefix.name
+    return [corner(cal, prefix.with_name(base + "-corner.png")),
+            residuals(cal, prefix.with_name(base + "-residuals.png"))]

@@ -1,0 +1,891 @@
+"""`calibrate predict`: the recommended grid for a mesh, its predicted cost and why.
+
+:func:`predict` turns a scene and the host's constants (a calibration's posterior
+samples, or a user's own ratio ``r = T_int / T_step``) into the recommended grid per
+level, the predicted counts and ns per ray, the effects the prediction used (with
+reasons) and the resolutions of today's heuristics beside it.  :func:`add_parser`
+registers the ``predict`` verb on the command line (``cmd_predict`` runs it).
+
+Fidelities (DESIGN §3.3):
+
+``paper``
+    The talk's closed forms for the scene's class (compact -> points law,
+    long-skinny -> lines law, mixed -> points law), and the talk's own cost model
+    for the counts (a cube of ``m^3`` cells: ``m`` steps, ``N/m^2`` or ``N/m`` tests;
+    a ray enters ``k`` subgrids per level).  Microseconds.
+``analytic``
+    The general integral-geometry model (:mod:`models.general`) with the effects
+    :func:`models.effects.select_effects` keeps; nested grids by Crofton composition
+    (:mod:`models.nested`).  One pass over the mesh (cached per scene object).
+``simulated``
+    The instrumented kernel (:meth:`calibrate._grid.Grid.count`) traverses a sample of
+    rays through the real scene at a few resolutions around the analytic optimum; the
+    measured count curves ``steps(s)``, ``tests(s)`` (``s`` = per-axis scale of the
+    resolution) are fitted and minimised.  They include what the analytic terms model
+    only approximately or not at all: termination at the first hit, clustering, the
+    kernel's own insertion, and camera rays.  Nested grids (L >= 2) are built in the
+    kernel as the analytic plan gives them and counted (not re-optimised).
+
+Units: with a calibration every time is ns.  With ``ratio`` alone (no calibration)
+``T_setup = 0``, ``T_step = 1``, ``T_int = r`` and ``T_sub = RATIO_MODE_T_SUB_IN_T_STEP``:
+every cost is then *in units of T_step*; the result's ``predicted.ns_per_ray`` is
+``None`` and ``predicted.cost_t_step`` holds ``{median, ci95}`` in those units.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import weakref
+from pathlib import Path
+
+import numpy as np
+
+from models import baselines as _baselines
+from models.closed_forms import K_CUBE, cells_to_resolution, l_level_cells
+from models.effects import select_effects, termination_fraction
+from models.general import Terms, expected_refs, predict_uniform, steps_per_ray
+from models.nested import MAX_LEVELS, TooManyPairs, clustering_change, nested_counts
+from models.stats import scene_class, triangle_geometry
+from models.uncertainty import posterior_optimum, summarise
+
+from ._grid import Grid, Scene
+from ._io import UserError
+
+FIDELITIES = ("paper", "analytic", "simulated")
+LEVEL_CHOICES = ("auto", "1", "2", "3")
+RAY_KINDS = ("isotropic", "camera")
+DEFAULT_CALIBRATION = "calibration.json"
+DEFAULT_SCENE = "sphere"
+
+# --- memory layout of the kernel's grid (kernels/gc_internal.h, kernels/grid.c) ---------
+#: gc_cell: begin + count, two uint32.
+BYTES_PER_CELL = 8
+#: one uint32 index in refs plus one gc_tri copy (3 x 3 doubles) in ref_tris.
+BYTES_PER_REFERENCE = 4 + 72
+#: tri_id: one int32 per mesh triangle.
+BYTES_PER_TRIANGLE = 4
+#: gc_node: one per (sub)grid, the top level included.
+BYTES_PER_NODE = 120
+
+# --- ratio mode ------------------------------------------------------------------------
+#: T_sub assumed with ``ratio`` alone (and when a calibration has no T_sub), in units of
+#: T_step.  Estimate from the kernel's walk(): entering a subgrid repeats the per-axis
+#: DDA set-up (entry cell, t_next, dt for 3 axes), about the work of two cell steps.
+RATIO_MODE_T_SUB_IN_T_STEP = 2.0
+
+# --- nested plans ---------------------------------------------------------------------------
+#: Nested plans (L >= 2) come from :func:`models.nested.nested_counts` (Crofton composition
+#: over the structure built from the real triangles, analytic leaves), screened over a few
+#: per-axis scales of the talk's L-level closed form for the top resolution (a walk from
+#: the closed form towards cheaper neighbours, stopping at the first dearer one).
+#: ``levels=auto`` stops at the first depth that does not beat the one above it.
+#: (:func:`models.nested.optimal_nested`'s nlopt search is not used: with exact overlap it
+#: takes about 20 s on 40k triangles.)
+#: Up to this many triangles the plan uses exact triangle/cell overlap (the kernel's
+#: default insertion) and SCREEN_AXIS_SCALES; above it, bounding-box overlap (conservative:
+#: more references than the kernel stores) and SCREEN_AXIS_SCALES_LARGE, to bound the time.
+NESTED_EXACT_MAX_TRIANGLES = 100_000
+#: Per-axis scales of the talk's L-level top resolution screened (2^(j/2), j = -2..2) ...
+SCREEN_AXIS_SCALES = tuple(2.0 ** (j / 2.0) for j in range(-2, 3))
+#: ... and above NESTED_EXACT_MAX_TRIANGLES (one evaluation: about 1 s for L = 2 and
+#: 3 s for L = 3 on 1M triangles).
+SCREEN_AXIS_SCALES_LARGE = (1.0,)
+
+# --- simulated fidelity ----------------------------------------------------------------
+#: Rays traced per resolution (common random numbers: the same rays at every resolution).
+SIM_RAYS = 4096
+#: Per-axis scale factors of the analytic optimum that are built and counted
+#: (2^(j/2), j = -2..2: a factor 8 in cells each way; the builds at the large end dominate).
+SIM_AXIS_SCALES = tuple(2.0 ** (j / 2.0) for j in range(-2, 3))
+#: Resolution of the fitted curves' minimisation over the scale (points on a log grid).
+SIM_SEARCH_POINTS = 256
+#: Seed of the simulated fidelity's rays (a prediction is deterministic).
+SIM_SEED = 0
+#: Above this many cells a simulated candidate is skipped (build memory and time).
+SIM_MAX_CELLS = 2 ** 24
+
+_STATS_CACHE: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+# ---------------------------------------------------------------------------------------
+# constants
+# ---------------------------------------------------------------------------------------
+
+class Constants:
+    """Medians and posterior samples of the hardware constants.
+
+    Attributes: ``t_setup, t_step, t_int, t_sub`` (floats, medians) and
+    ``samples`` (dict name -> (S,) float64, same names without ``_ns``);
+    ``units`` is ``"ns"`` or ``"T_step"`` (ratio mode); ``notes`` lists assumptions.
+    """
+
+    def __init__(self, t_setup, t_step, t_int, t_sub, samples, units, notes):
+        self.t_setup, self.t_step, self.t_int, self.t_sub = (float(t_setup), float(t_step), float(t_int),
+                                                             float(t_sub))
+        self.samples = samples
+        self.units = units
+        self.notes = notes
+
+    @property
+    def ratio(self) -> float:
+        return self.t_int / self.t_step
+
+    def cost_samples(self, steps, tests, subgrids=0.0) -> np.ndarray:
+        """(S,) predicted cost per ray for fixed counts, one per posterior sample."""
+        s = self.samples
+        return s["t_setup"] + s["t_step"] * steps + s["t_int"] * tests + s["t_sub"] * subgrids
+
+    def cost(self, steps, tests, subgrids=0.0) -> float:
+        """Predicted cost per ray under the median constants."""
+        return self.t_setup + self.t_step * steps + self.t_int * tests + self.t_sub * subgrids
+
+
+def _median_of(value, name):
+    if isinstance(value, dict):
+        value = value.get("median")
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"constant {name} must be a number (ns), got {value!r}") from None
+    if not math.isfinite(x) or x < 0:
+        raise ValueError(f"constant {name} must be finite and >= 0 ns, got {value!r}")
+    return x
+
+
+def resolve_constants(constants=None, samples=None, ratio=None) -> Constants:
+    """Constants from a calibration's medians/samples or from a ratio alone.
+
+    constants : mapping ``t_setup_ns, t_step_ns, t_int_ns[, t_sub_ns]`` -> ns (a float or
+        a ``{"median": ...}`` block, e.g. a calibration's ``constants``).
+    samples : mapping of the same names -> (S,) posterior samples (ns), e.g.
+        :func:`calibrate.calfile.samples_by_name`; medians default to theirs.
+    ratio : ``T_int / T_step`` > 0 (no calibration; costs in units of T_step).
+    """
+    notes = []
+    if ratio is not None:
+        if constants is not None or samples is not None:
+            raise ValueError("give either a calibration or a ratio, not both")
+        try:
+            r = float(ratio)
+        except (TypeError, ValueError):
+            raise ValueError(f"ratio must be a number (T_int / T_step), got {ratio!r}") from None
+        if not (math.isfinite(r) and r > 0):
+            raise ValueError(f"ratio must be a finite number > 0 (T_int / T_step), got {ratio!r}")
+        one = lambda x: np.array([float(x)])  # noqa: E731
+        notes.append(f"ratio mode: T_setup = 0, T_step = 1, T_int = {r:g}, T_sub = "
+                     f"{RATIO_MODE_T_SUB_IN_T_STEP:g} (assumed); costs are in units of T_step")
+        return Constants(0.0, 1.0, r, RATIO_MODE_T_SUB_IN_T_STEP,
+                         dict(t_setup=one(0.0), t_step=one(1.0), t_int=one(r), t_sub=one(RATIO_MODE_T_SUB_IN_T_STEP)),
+                         "T_step", notes)
+    if constants is None and samples is None:
+        raise ValueError("no calibration: run `calibrate run` first, pass a calibration file, or give a ratio "
+                         "T_int/T_step")
+    names = ("t_setup", "t_step", "t_int", "t_sub")
+    arrays = {}
+    if samples is not None:
+        for n in names:
+            a = samples.get(f"{n}_ns")
+            if a is None:
+                continue
+            a = np.asarray(a, dtype=np.float64).reshape(-1)
+            if a.size == 0 or not np.all(np.isfinite(a)) or np.any(a < 0):
+                raise ValueError(f"samples of {n}_ns must be a non-empty array of finite ns >= 0")
+            arrays[n] = a
+        sizes = {a.size for a in arrays.values()}
+        if len(sizes) > 1:
+            raise ValueError(f"posterior sample columns differ in length: {sorted(sizes)}")
+    med = {}
+    for n in names:
+        v = None if constants is None else constants.get(f"{n}_ns")
+        if v is not None:
+            med[n] = _median_of(v, f"{n}_ns")
+        elif n in arrays:
+            med[n] = float(np.median(arrays[n]))
+    for n in ("t_setup", "t_step", "t_int"):
+        if n not in med:
+            raise ValueError(f"the calibration lacks {n}_ns")
+    if not (med["t_step"] > 0 and med["t_int"] > 0):
+        raise ValueError("t_step_ns and t_int_ns must be > 0")
+    if "t_sub" not in med:
+        med["t_sub"] = RATIO_MODE_T_SUB_IN_T_STEP * med["t_step"]
+        notes.append(f"the calibration has no T_sub: assumed {RATIO_MODE_T_SUB_IN_T_STEP:g} x T_step")
+    size = next(iter(arrays.values())).size if arrays else 1
+    for n in names:
+        if n not in arrays:
+            arrays[n] = np.full(size, med[n])
+    if np.any(arrays["t_step"] <= 0) or np.any(arrays["t_int"] <= 0):
+        raise ValueError("posterior samples of t_step_ns and t_int_ns must be > 0")
+    return Constants(med["t_setup"], med["t_step"], med["t_int"], med["t_sub"], arrays, "ns", notes)
+
+
+def load_calibration_constants(path) -> Constants:
+    """Constants of a calibration file (medians and posterior samples); UserError naming the file."""
+    from . import calfile
+
+    p = Path(path)
+    if not p.exists():
+        raise UserError(f"{p}: no such calibration file; run `calibrate run` to create one, or pass --ratio R")
+    cal = calfile.load(p)
+    return resolve_constants(constants=cal["constants"], samples=calfile.samples_by_name(cal))
+
+
+# ---------------------------------------------------------------------------------------
+# helpers
+# ---------------------------------------------------------------------------------------
+
+def scene_statistics(scene: Scene):
+    """SceneStats of a scene (computed once per scene object)."""
+    return scene.stats
+
+
+def _geometry(scene: Scene):
+    """(per-triangle geometry, corners (F, 3, 3) or None) for the nested model, cached per scene.
+
+    Corners (exact overlap) only up to NESTED_EXACT_MAX_TRIANGLES triangles.
+    """
+    cached = _STATS_CACHE.get(scene)
+    if cached is None:
+        geom = triangle_geometry(scene.vertices, scene.faces)
+        corners = scene.vertices[scene.faces] if scene.n_triangles <= NESTED_EXACT_MAX_TRIANGLES else None
+        cached = (geom, corners)
+        _STATS_CACHE[scene] = cached
+    return cached
+
+
+def _res_list(res):
+    return [int(x) for x in res]
+
+
+def _memory_bytes(n_triangles, cells, refs, nodes) -> int:
+    return int(BYTES_PER_TRIANGLE * n_triangles + BYTES_PER_CELL * cells + BYTES_PER_REFERENCE * refs
+               + BYTES_PER_NODE * nodes)
+
+
+def _interval(x: np.ndarray) -> dict:
+    iv = summarise(x)
+    return dict(median=iv.median, ci95=[iv.ci95[0], iv.ci95[1]])
+
+
+def _check_choice(name, value, choices):
+    if str(value) not in choices:
+        raise ValueError(f"unknown {name} {value!r}; choose one of {', '.join(choices)}")
+    return str(value)
+
+
+def _level_dicts_uniform(stats, res, refs):
+    cells = res[0] * res[1] * res[2]
+    return [dict(level=1, resolution=_res_list(res), grids=1, cells=int(cells), references=float(refs),
+                 memory_bytes=_memory_bytes(0, cells, refs, 1))]
+
+
+# ---------------------------------------------------------------------------------------
+# paper fidelity
+# ---------------------------------------------------------------------------------------
+
+def paper_plan(stats, cls, k: Constants, levels):
+    """The talk's closed forms and the talk's cost model (pure arithmetic on the statistics).
+
+    stats : SceneStats; cls : scene class ("compact" | "long-skinny" | "mixed"; mixed
+    uses the points law); k : :class:`Constants`; levels : "auto" | "1" | "2" | "3".
+    Cells per level from :func:`models.closed_forms.l_level_cells` with the scene's
+    ``k = E2 / V^(2/3)``; counts per ray from the talk's cube model with ``m_l = M_l^(1/3)``:
+    ``steps = sum_l k^(l-1) m_l``, ``subgrids = sum_{l>=2} k^(l-1)``, leaf tests
+    ``k^(L-1) n_L / m_L^2`` (points) or ``/ m_L`` (lines), ``n_{l+1} = n_l / (k m_l^2)``
+    (points) or ``n_l / (k m_l)`` (lines).
+
+    Returns (plan, effects): plan is a dict with ``levels`` (list of dicts, top first),
+    ``steps``, ``tests``, ``subgrids`` (per ray), ``memory_bytes``; effects a list of dicts.
+    """
+    kind = "lines" if cls == "long-skinny" else "points"
+    kk = max(float(stats.k), 1e-3) if np.isfinite(stats.k) else K_CUBE
+    n = float(stats.n_triangles)
+    r = k.ratio
+
+    def plan(L):
+        cells = l_level_cells(n, r, L, kk, kind=kind)
+        m = [float(c) ** (1.0 / 3.0) for c in cells]
+        n_l = n
+        steps = subgrids = 0.0
+        for depth in range(L):
+            entered = kk ** depth
+            steps += entered * m[depth]
+            if depth > 0:
+                subgrids += entered
+            if depth < L - 1:
+                n_l = n_l / (kk * m[depth] ** 2) if kind == "points" else n_l / (kk * m[depth])
+        tests = kk ** (L - 1) * (n_l / m[-1] ** 2 if kind == "points" else n_l / m[-1])
+        out_levels = []
+        extent = np.asarray(stats.extent, dtype=np.float64)
+        grids = 1
+        for depth, c in enumerate(cells):
+            res = cells_to_resolution(c, extent)
+            nc = res[0] * res[1] * res[2]
+            out_levels.append(dict(level=depth + 1, resolution=_res_list(res), grids=int(round(grids)),
+                                   cells=int(round(grids * nc))))
+            # occupied cells of this level hold the next level's grids (the talk's k m^2 per grid)
+            grids = grids * min(kk * float(c) ** (2.0 / 3.0), nc)
+            extent = extent / np.asarray(res, dtype=np.float64)
+        refs = n  # the talk's points: one reference per primitive
+        total_cells = sum(lv["cells"] for lv in out_levels)
+        nodes = sum(lv["grids"] for lv in out_levels)
+        for lv in out_levels:
+            leaf = lv["level"] == L
+            lv["references"] = float(refs) if leaf else 0.0
+            lv["memory_bytes"] = _memory_bytes(0, lv["cells"], refs if leaf else 0, lv["grids"])
+        return dict(levels=out_levels, steps=steps, tests=tests, subgrids=subgrids,
+                    memory_bytes=_memory_bytes(n, total_cells, refs, nodes), kind=kind)
+
+    if levels == "auto":
+        plans = [plan(L) for L in range(1, MAX_LEVELS + 1)]
+        best = min(plans, key=lambda p: k.cost(p["steps"], p["tests"], p["subgrids"]))
+    else:
+        best = plan(int(levels))
+    law = {"points": "M = 2 N r (points)", "lines": "M = (N r)^1.5 (lines)"}[kind]
+    effects = [dict(name="paper", used=True, change=0.0,
+                    reason=f"the talk's closed form for a {cls} scene: {law}" +
+                           (f", {len(best['levels'])}-level recursion with k = {kk:.3g}" if len(best["levels"]) > 1
+                            else "") + "; rays never terminate, no edge or area terms")]
+    return best, effects
+
+
+# ---------------------------------------------------------------------------------------
+# analytic fidelity
+# ---------------------------------------------------------------------------------------
+
+def _effect_dicts(sel):
+    return [dict(name=e.name, used=bool(e.used), change=float(e.change), reason=e.reason) for e in sel.effects]
+
+
+def analytic_uniform_plan(stats, k: Constants, mailbox):
+    """Single-level plan of the general model with the effects :func:`models.effects.select_effects` keeps.
+
+    Rays terminate at the first hit (the kernel's behaviour), exact overlap (the kernel's
+    default insertion).  Returns (plan, effects) like :func:`paper_plan`; plan also holds
+    ``terms`` (the selected :class:`models.general.Terms`).
+    """
+    sel = select_effects(stats, k.t_setup, k.t_step, k.t_int, mailbox=mailbox, termination=True, overlap="exact",
+                         levels=1)
+    res = sel.resolution
+    _, steps, tests = predict_uniform(stats, res, k.t_setup, k.t_step, k.t_int, overlap="exact", terms=sel.terms)
+    refs = expected_refs(stats, res, overlap="exact")
+    plan = dict(levels=_level_dicts_uniform(stats, res, refs), steps=steps, tests=tests, subgrids=0.0,
+                memory_bytes=_memory_bytes(stats.n_triangles, res[0] * res[1] * res[2], refs, 1),
+                terms=sel.terms, selection=sel)
+    return plan, _effect_dicts(sel)
+
+
+def _nested_plan(scene, stats, k: Constants, L):
+    """An L-level structure from models.nested (counts without termination) and how it was found.
+
+    Analytic-leaf counts at the talk's L-level closed form for the top resolution scaled
+    per axis by ``SCREEN_AXIS_SCALES`` (or ``SCREEN_AXIS_SCALES_LARGE``); the cheapest is kept.
+    Returns (NestedCounts, overlap, description).
+    """
+    geom, corners = _geometry(scene)
+    overlap = "exact" if corners is not None else "bbox"
+    scales = SCREEN_AXIS_SCALES if corners is not None else SCREEN_AXIS_SCALES_LARGE
+    kk = max(float(stats.k), 1e-3)
+    centre = cells_to_resolution(float(l_level_cells(stats.n_triangles, k.ratio, L, kk, kind="points")[0]),
+                                 stats.extent)
+    memo = {}
+
+    def evaluate(i):
+        if i not in memo:
+            try:
+                c = nested_counts(geom, stats.box_lo, stats.box_hi, _scaled(centre, scales[i]), L, k.ratio,
+                                  overlap=overlap, corners=corners, leaves="analytic")
+                memo[i] = (k.cost(c.steps, c.tests, c.subgrids), c)
+            except TooManyPairs:
+                memo[i] = (math.inf, None)
+        return memo[i][0]
+
+    # Walk from the closed form (scale 1) towards cheaper neighbours; stop when one is dearer.
+    i = scales.index(1.0)
+    evaluate(i)
+    for step in (-1, 1):
+        j = i
+        while 0 <= j + step < len(scales) and evaluate(j + step) < evaluate(j):
+            j += step
+        if j != i:
+            break
+    ns, best = min(memo.values(), key=lambda v: v[0])
+    if best is None:
+        raise TooManyPairs(f"every screened {L}-level top resolution exceeds the pair budget")
+    how = (f"{overlap} overlap; top by a walk over {len(memo)} of {len(scales)} scales of the talk's L-level "
+           "law, analytic leaves"
+           + ("" if corners is not None else
+              f"; above {NESTED_EXACT_MAX_TRIANGLES:,} triangles: conservative bounding-box overlap"))
+    return best, overlap, how
+
+
+def _nested_levels(counts, n_triangles):
+    out = []
+    for depth, info in enumerate(counts.per_level):
+        res = np.asarray(info.resolutions).reshape(-1, 3)
+        leaf = depth == counts.levels - 1
+        lv = dict(level=depth + 1, resolution=_res_list(np.median(res, axis=0).round().astype(int)),
+                  grids=int(info.grids), cells=int(info.cells),
+                  references=float(counts.refs) if leaf else float(info.refs),
+                  memory_bytes=_memory_bytes(0, info.cells, counts.refs if leaf else 0, info.grids))
+        if res.shape[0] > 1:
+            lv["resolution_is"] = "median over subgrids"
+            lv["resolution_min"] = _res_list(res.min(axis=0))
+            lv["resolution_max"] = _res_list(res.max(axis=0))
+        out.append(lv)
+    return out
+
+
+def _analytic_nested(scene, stats, k: Constants, L, mailbox):
+    counts, overlap, how = _nested_plan(scene, stats, k, L)
+    frac, _ = termination_fraction(stats)
+    ns0 = k.cost(counts.steps, counts.tests, counts.subgrids)
+    sel = select_effects(stats, k.t_setup, k.t_step, k.t_int, mailbox=mailbox, termination=True, overlap="exact",
+                         levels=L, subgrid_ns=k.t_sub * counts.subgrids * frac,
+                         clustering_change=clustering_change(counts, stats, k.t_step, k.t_int, ns0))
+    f = sel.terms.traversed_fraction
+    nodes = sum(info.grids for info in counts.per_level)
+    plan = dict(levels=_nested_levels(counts, stats.n_triangles), steps=f * counts.steps, tests=f * counts.tests,
+                subgrids=f * counts.subgrids, memory_bytes=_memory_bytes(stats.n_triangles, counts.cells,
+                                                                         counts.refs, nodes),
+                terms=sel.terms, counts=counts, overlap=overlap)
+    effects = _effect_dicts(sel)
+    effects.append(dict(name="nested-model", used=True, change=0.0,
+                        reason=(f"{L}-level Crofton composition over the built structure ({how}); "
+                                f"termination scales its counts by {100 * f:.0f}%")))
+    return plan, effects
+
+
+def _analytic_plan(scene, stats, k: Constants, levels, mailbox):
+    if levels != "auto":
+        L = int(levels)
+        if L == 1:
+            return analytic_uniform_plan(stats, k, mailbox)
+        return _analytic_nested(scene, stats, k, L, mailbox)
+    best = analytic_uniform_plan(stats, k, mailbox)
+    best_ns = k.cost(best[0]["steps"], best[0]["tests"])
+    tried = [f"L=1: {best_ns:.4g}"]
+    for L in range(2, MAX_LEVELS + 1):
+        try:
+            cand = _analytic_nested(scene, stats, k, L, mailbox)
+        except TooManyPairs:
+            tried.append(f"L={L}: too many triangle-cell pairs to model")
+            break
+        ns = k.cost(cand[0]["steps"], cand[0]["tests"], cand[0]["subgrids"])
+        tried.append(f"L={L}: {ns:.4g}")
+        if ns >= best_ns:
+            break
+        best, best_ns = cand, ns
+    best[1].append(dict(name="levels", used=True, change=0.0,
+                        reason=(f"depth by predicted cost per ray incl. T_sub ({k.units}), stopping at the first "
+                                "depth that does not improve: " + ", ".join(tried))))
+    return best
+
+
+# ---------------------------------------------------------------------------------------
+# simulated fidelity
+# ---------------------------------------------------------------------------------------
+
+def _rays(scene, kind, n, seed):
+    from . import rays as _rays_mod
+
+    if kind == "camera":
+        return _rays_mod.camera(scene.box_lo, scene.box_hi, n, seed)
+    return _rays_mod.isotropic(scene.box_lo, scene.box_hi, n, seed)
+
+
+def _scaled(res, s):
+    return tuple(max(1, int(round(x * s))) for x in res)
+
+
+def fit_count_curves(scales, steps, tests):
+    """Least-squares count curves over the per-axis scale s of a resolution.
+
+    ``steps(s) = a0 + a1 s`` and ``tests(s) = b0 + b1 / s + b2 / s^2`` (the general
+    model's shapes: steps grow with cells per axis; tests are N, E1/h, E2/h^2 terms
+    times the cell surface h^2).  Coefficients are clipped at 0 after the fit.
+
+    scales, steps, tests : (J,) float64.  Returns (a (2,), b (3,)).
+    """
+    s = np.asarray(scales, dtype=np.float64)
+    a = np.linalg.lstsq(np.stack([np.ones_like(s), s], axis=1), np.asarray(steps, float), rcond=None)[0]
+    b = np.linalg.lstsq(np.stack([np.ones_like(s), 1.0 / s, 1.0 / s ** 2], axis=1), np.asarray(tests, float),
+                        rcond=None)[0]
+    return np.maximum(a, 0.0), np.maximum(b, 0.0)
+
+
+def _count(grid, o, d):
+    steps, tests, sub = grid.count(o, d)
+    return float(steps.mean()), float(tests.mean()), float(sub.mean()), grid.info
+
+
+def _simulated_uniform(scene, stats, k: Constants, rays, mailbox):
+    base_plan, effects = analytic_uniform_plan(stats, k, mailbox)
+    base = tuple(base_plan["levels"][0]["resolution"])
+    o, d = _rays(scene, rays, SIM_RAYS, SIM_SEED)
+    # Keep every build within SIM_MAX_CELLS: shift the whole scale set down when its top end
+    # would exceed the budget (then the recommendation is bounded by the budget; said below).
+    base_cells = float(base[0]) * base[1] * base[2]
+    shift = min(1.0, (SIM_MAX_CELLS / (base_cells * max(SIM_AXIS_SCALES) ** 3)) ** (1.0 / 3.0))
+    rows = []
+    for s in SIM_AXIS_SCALES:
+        res = _scaled(base, s * shift)
+        if res[0] * res[1] * res[2] > SIM_MAX_CELLS or any(r[1] == res for r in rows):
+            continue
+        st, te, _, _ = _count(Grid.uniform(scene, res, mailbox=mailbox), o, d)
+        rows.append((s * shift, res, st, te))
+    sc = np.array([r[0] for r in rows])
+    st = np.array([r[2] for r in rows])
+    te = np.array([r[3] for r in rows])
+    measured_cost = k.t_setup + k.t_step * st + k.t_int * te
+    if len(rows) >= 3:  # enough distinct resolutions to fit the three test terms
+        a, b = fit_count_curves(sc, st, te)
+        grid_s = np.exp(np.linspace(np.log(sc.min()), np.log(sc.max()), SIM_SEARCH_POINTS))
+        cost = k.t_setup + k.t_step * (a[0] + a[1] * grid_s) + k.t_int * (b[0] + b[1] / grid_s + b[2] / grid_s ** 2)
+        s_best = float(grid_s[int(np.argmin(cost))])
+    else:  # tiny grids: rounding merges the scales; take the cheapest measured one
+        a, b = np.full(2, np.nan), np.full(3, np.nan)
+        s_best = float(sc[int(np.argmin(measured_cost))])
+    at_edge = len(rows) >= 3 and s_best >= sc.max() * (1.0 - 1e-9)
+    edge_note = ""
+    if at_edge:
+        edge_note = (f"; bounded by the simulation's {SIM_MAX_CELLS:,}-cell budget: the optimum may be finer"
+                     if shift < 1.0 else "; at the finest simulated resolution: the optimum may be finer")
+    res = _scaled(base, s_best)
+    steps, tests, _, info = _count(Grid.uniform(scene, res, mailbox=mailbox), o, d)
+    refs = float(info["n_refs"])
+    model_steps = steps_per_ray(stats.extent, res)
+    _, _, model_tests = predict_uniform(stats, res, 0.0, 1.0, 1.0, overlap="exact", terms=Terms(mailbox=mailbox))
+    cells = res[0] * res[1] * res[2]
+    plan = dict(levels=[dict(level=1, resolution=_res_list(res), grids=1, cells=int(cells), references=refs,
+                             memory_bytes=int(info["memory_bytes"]))],
+                steps=steps, tests=tests, subgrids=0.0, memory_bytes=int(info["memory_bytes"]),
+                simulation=dict(rays=SIM_RAYS, ray_set=rays, scales=sc.tolist(), steps=st.tolist(),
+                                tests=te.tolist(), steps_fit=a.tolist(), tests_fit=b.tolist(), best_scale=s_best,
+                                analytic_resolution=_res_list(base)))
+    effects.append(dict(
+        name="simulated", used=True, change=float(abs(tests / model_tests - 1.0)) if model_tests > 0 else 0.0,
+        reason=(f"instrumented kernel on {SIM_RAYS} {rays} rays at {len(rows)} resolutions: at the optimum the "
+                f"kernel takes {steps:.3g} steps and {tests:.3g} tests per ray, {100 * steps / model_steps:.0f}% "
+                f"and {100 * tests / model_tests:.0f}% of the no-termination model (termination at the first hit, "
+                "clustering, ray distribution)" + edge_note)))
+    return plan, effects
+
+
+def _kernel_subgrid_resolutions(scene, stats, counts, overlap):
+    """(cells, 3) int32 depth-1 subgrid resolutions of a models.nested structure, x fastest.
+
+    The non-empty top cells are recomputed exactly as :func:`models.nested.nested_counts`
+    enumerates them (bounding-box candidates, then the separating-axis test for exact
+    overlap); their order is the flat cell index, the order of the plan's subgrids.
+    """
+    from models.nested import _enumerate_pairs, triangle_box_overlap  # the same enumeration: rows line up
+
+    geom, corners = _geometry(scene)
+    top = np.asarray(counts.top_resolution, dtype=np.int64)
+    lo = np.asarray(stats.box_lo)
+    cell = np.asarray(stats.extent) / top
+    src, ijk = _enumerate_pairs(geom.lo, geom.hi, lo[None, :], cell[None, :], top[None, :])
+    if overlap == "exact":
+        c_lo = lo[None, :] + ijk * cell[None, :]
+        keep = triangle_box_overlap(corners[src], c_lo, c_lo + cell[None, :])
+        ijk = ijk[keep]
+    flat = ijk[:, 0] + top[0] * (ijk[:, 1] + top[1] * ijk[:, 2])
+    n_cells = int(np.prod(top))
+    nonempty = np.flatnonzero(np.bincount(flat, minlength=n_cells))
+    sub = np.zeros((n_cells, 3), dtype=np.int32)
+    child = np.asarray(counts.per_level[1].resolutions).reshape(-1, 3)
+    if child.shape[0] != nonempty.size:
+        raise ValueError(f"the nested plan has {child.shape[0]} subgrids but {nonempty.size} non-empty top cells")
+    sub[nonempty] = child
+    return sub
+
+
+def _simulated_nested(scene, stats, k: Constants, L, rays, mailbox):
+    plan, effects = _analytic_nested(scene, stats, k, L, mailbox)
+    counts = plan["counts"]
+    sub = _kernel_subgrid_resolutions(scene, stats, counts, plan["overlap"])
+    grid = Grid.nested(scene, levels=L, resolution=counts.top_resolution, subgrid_resolutions=sub, mailbox=mailbox)
+    o, d = _rays(scene, rays, SIM_RAYS, SIM_SEED)
+    steps, tests, subgrids, info = _count(grid, o, d)
+    plan = dict(plan, steps=steps, tests=tests, subgrids=subgrids, memory_bytes=int(info["memory_bytes"]))
+    plan["levels"] = [dict(lv) for lv in plan["levels"]]
+    plan["levels"][-1]["references"] = float(info["n_refs"])
+    effects.append(dict(name="simulated", used=True, change=0.0,
+                        reason=(f"instrumented kernel on {SIM_RAYS} {rays} rays through the {L}-level plan built "
+                                f"in the kernel ({steps:.3g} steps, {tests:.3g} tests, {subgrids:.3g} subgrids per "
+                                "ray); top resolution from the analytic plan, not re-optimised"
+                                + ("; deeper levels by the kernel's rule" if L > 2 else ""))))
+    return plan, effects
+
+
+def _simulated_plan(scene, stats, k: Constants, levels, rays, mailbox):
+    if levels != "auto":
+        L = int(levels)
+        if L == 1:
+            return _simulated_uniform(scene, stats, k, rays, mailbox)
+        return _simulated_nested(scene, stats, k, L, rays, mailbox)
+    best = _simulated_uniform(scene, stats, k, rays, mailbox)
+    best_ns = k.cost(best[0]["steps"], best[0]["tests"])
+    tried = [f"L=1: {best_ns:.4g}"]
+    for L in range(2, MAX_LEVELS + 1):
+        try:
+            cand = _simulated_nested(scene, stats, k, L, rays, mailbox)
+        except (TooManyPairs, ValueError) as exc:
+            tried.append(f"L={L}: not built ({exc})")
+            break
+        ns = k.cost(cand[0]["steps"], cand[0]["tests"], cand[0]["subgrids"])
+        tried.append(f"L={L}: {ns:.4g}")
+        if ns >= best_ns:
+            break
+        best, best_ns = cand, ns
+    best[1].append(dict(name="levels", used=True, change=0.0,
+                        reason=(f"depth by simulated cost per ray incl. T_sub ({k.units}), stopping at the first "
+                                "depth that does not improve: " + ", ".join(tried))))
+    return best
+
+
+# ---------------------------------------------------------------------------------------
+# the prediction
+# ---------------------------------------------------------------------------------------
+
+def _baseline_table(stats, k: Constants, terms):
+    out, detail = {}, {}
+    for name, levels in _baselines.all_baselines(stats).items():
+        out[name] = _res_list(levels[0])
+        d = dict(levels=[_res_list(x) for x in levels])
+        if len(levels) == 1:
+            _, steps, tests = predict_uniform(stats, levels[0], 0.0, 1.0, 1.0, overlap="exact", terms=terms)
+            d.update(steps_per_ray=steps, tests_per_ray=tests, cost_per_ray=k.cost(steps, tests))
+        detail[name] = d
+    return out, detail
+
+
+def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analytic", levels="auto",
+            rays="isotropic", mailbox=False) -> dict:
+    """Recommended grid, predicted cost and the effects used, for one scene.
+
+    Parameters
+    ----------
+    scene : :class:`calibrate._grid.Scene`, a built-in scene's name or a mesh file's path.
+    constants, samples, ratio : see :func:`resolve_constants` (a calibration's medians and
+        posterior samples in ns, or ``ratio = T_int / T_step`` alone).
+    fidelity : "paper" | "analytic" | "simulated" (module docstring).
+    levels : "auto" (choose 1..3 by predicted cost incl. T_sub) or 1, 2, 3.
+    rays : "isotropic" | "camera" (the ray set the simulated fidelity counts; the
+        analytic models assume isotropic lines and say so for camera rays).
+    mailbox : the kernel mailboxes (tests each triangle once per ray).
+
+    Returns
+    -------
+    dict (JSON-ready): ``scene``, ``triangles``, ``scene_class``, ``scene_class_reason``,
+    ``fidelity``, ``units`` ("ns" or "T_step"), ``levels`` (top first, each with
+    ``resolution`` [nx, ny, nz], ``grids``, ``cells``, ``references``), ``memory_bytes``,
+    ``predicted`` (``ns_per_ray`` {median, ci95} or None in ratio mode, ``cost_t_step``
+    in ratio mode, ``steps_per_ray``, ``tests_per_ray``, ``subgrids_per_ray``),
+    ``effects`` (list of {name, used, change, reason}), ``baselines`` (name ->
+    top-level [nx, ny, nz]), ``baselines_detail``, ``notes``, ``timing_s``.
+    """
+    t0 = time.perf_counter()
+    fidelity = _check_choice("fidelity", fidelity, FIDELITIES)
+    levels = _check_choice("levels", levels, LEVEL_CHOICES)
+    rays = _check_choice("ray set", rays, RAY_KINDS)
+    if not isinstance(mailbox, (bool, np.bool_)):
+        raise ValueError(f"mailbox must be True or False, got {mailbox!r}")
+    mailbox = bool(mailbox)
+    k = resolve_constants(constants, samples, ratio)
+    if not isinstance(scene, Scene):
+        scene = Scene.load(scene)
+    stats = scene_statistics(scene)
+    cls, cls_reason = scene_class(stats)
+    notes = list(k.notes)
+    if fidelity == "paper":
+        plan, effects = paper_plan(stats, cls, k, levels)
+    elif fidelity == "analytic":
+        plan, effects = _analytic_plan(scene, stats, k, levels, mailbox)
+    else:
+        plan, effects = _simulated_plan(scene, stats, k, levels, rays, mailbox)
+    if rays == "camera" and fidelity != "simulated":
+        notes.append("camera rays: the paper and analytic models assume isotropic lines; use --fidelity simulated "
+                     "to count camera rays")
+    steps, tests, subgrids = float(plan["steps"]), float(plan["tests"]), float(plan["subgrids"])
+    cost = _interval(k.cost_samples(steps, tests, subgrids))
+    predicted = dict(ns_per_ray=cost if k.units == "ns" else None, steps_per_ray=steps, tests_per_ray=tests,
+                     subgrids_per_ray=subgrids)
+    if k.units != "ns":
+        predicted["cost_t_step"] = cost
+    terms = plan.get("terms") or Terms(mailbox=mailbox)
+    if fidelity == "analytic" and len(plan["levels"]) == 1 and k.samples["t_step"].size > 1:
+        post = posterior_optimum(stats, k.samples["t_setup"], k.samples["t_step"], k.samples["t_int"], terms=terms,
+                                 overlap="exact", use_jax=False)
+        predicted["resolution_ci95"] = [_res_list(post.resolution_ci95[0]), _res_list(post.resolution_ci95[1])]
+        predicted["uncertainty_penalty"] = post.penalty
+    # The recommendation under the same model as the baselines (general model, selected terms).
+    if len(plan["levels"]) == 1:
+        _, m_steps, m_tests = predict_uniform(stats, plan["levels"][0]["resolution"], 0.0, 1.0, 1.0, overlap="exact",
+                                              terms=terms)
+        predicted["model_cost_per_ray"] = k.cost(m_steps, m_tests)
+    elif "counts" in plan:
+        c, f = plan["counts"], terms.traversed_fraction
+        predicted["model_cost_per_ray"] = k.cost(f * c.steps, f * c.tests, f * c.subgrids)
+    else:
+        predicted["model_cost_per_ray"] = None
+    base, base_detail = _baseline_table(stats, k, terms)
+    out = dict(scene=scene.name, triangles=int(stats.n_triangles), scene_class=cls, scene_class_reason=cls_reason,
+               fidelity=fidelity, units=k.units, rays=rays, mailbox=mailbox,
+               constants=dict(t_setup=k.t_setup, t_step=k.t_step, t_int=k.t_int, t_sub=k.t_sub, ratio=k.ratio),
+               levels=plan["levels"], memory_bytes=int(plan["memory_bytes"]), predicted=predicted,
+               effects=effects, baselines=base, baselines_detail=base_detail, notes=notes)
+    if "simulation" in plan:
+        out["simulation"] = plan["simulation"]
+    out["timing_s"] = time.perf_counter() - t0
+    return _plain(out)
+
+
+def _plain(x):
+    """numpy scalars/arrays and tuples -> JSON types; non-finite floats -> None."""
+    if isinstance(x, dict):
+        return {str(key): _plain(v) for key, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_plain(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _plain(x.tolist())
+    if isinstance(x, (bool, np.bool_)):
+        return bool(x)
+    if isinstance(x, (int, np.integer)):
+        return int(x)
+    if isinstance(x, (float, np.floating)):
+        f = float(x)
+        return f if math.isfinite(f) else None
+    return x
+
+
+# ---------------------------------------------------------------------------------------
+# command line
+# ---------------------------------------------------------------------------------------
+
+def _ratio_arg(text: str) -> float:
+    import argparse
+
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number T_int/T_step, got {text!r}") from None
+    if not (math.isfinite(x) and x > 0):
+        raise argparse.ArgumentTypeError(f"the ratio T_int/T_step must be a positive number, got {text!r}")
+    return x
+
+
+def add_parser(sub):
+    """Register the ``predict`` verb on an argparse subparsers object; returns its parser."""
+    help_text = "predict the optimal uniform or nested grid for a mesh and its cost per ray"
+    sp = sub.add_parser("predict", help=help_text, description=help_text)
+    sp.add_argument("--json", action="store_true", help="machine-readable output on stdout")
+    sp.add_argument("--quiet", action="store_true", help="no progress bar")
+    sp.add_argument("mesh", nargs="?", default=DEFAULT_SCENE, metavar="MESH|SCENE",
+                    help=f"a mesh file or a built-in scene's name (default {DEFAULT_SCENE})")
+    src = sp.add_mutually_exclusive_group()
+    src.add_argument("--calibration", metavar="FILE",
+                     help=f"calibration file (default ./{DEFAULT_CALIBRATION} when it exists)")
+    src.add_argument("--ratio", type=_ratio_arg, metavar="R",
+                     help="predict from your own T_int/T_step alone; costs then in units of T_step")
+    sp.add_argument("--fidelity", default="analytic", choices=FIDELITIES)
+    sp.add_argument("--levels", default="auto", choices=LEVEL_CHOICES)
+    sp.add_argument("--rays", default="isotropic", choices=RAY_KINDS)
+    sp.add_argument("--mailbox", action="store_true", help="the kernel mailboxes (tests each triangle once per ray)")
+    sp.set_defaults(func=cmd_predict)
+    return sp
+
+
+def _constants_from_args(args) -> dict:
+    if getattr(args, "ratio", None) is not None:
+        return dict(ratio=args.ratio)
+    path = Path(args.calibration) if getattr(args, "calibration", None) else Path(DEFAULT_CALIBRATION)
+    if not path.exists():
+        if getattr(args, "calibration", None):
+            raise UserError(f"{path}: no such calibration file; run `calibrate run` to create one, or pass --ratio R")
+        raise UserError(f"no calibration: ./{DEFAULT_CALIBRATION} does not exist; run `calibrate run` first, "
+                        "pass --calibration FILE, or give your own ratio with --ratio R")
+    k = load_calibration_constants(path)
+    s = k.samples
+    return dict(samples={f"{n}_ns": s[n] for n in ("t_setup", "t_step", "t_int", "t_sub")},
+                constants={f"{n}_ns": getattr(k, n) for n in ("t_setup", "t_step", "t_int", "t_sub")})
+
+
+def cmd_predict(args) -> int:
+    """Run the ``predict`` verb: JSON on stdout with ``--json``, else rich tables."""
+    import json
+    import sys
+
+    src = _constants_from_args(args)
+    scene = Scene.load(args.mesh)
+    slow = args.fidelity == "simulated" or (args.levels != "1" and args.fidelity == "analytic")
+    if slow and not args.quiet and not args.json:
+        print(f"predicting ({args.fidelity}) for {scene.name} ({scene.n_triangles:,} triangles) ...",
+              file=sys.stderr)
+    result = predict(scene, fidelity=args.fidelity, levels=args.levels, rays=args.rays, mailbox=args.mailbox, **src)
+    if args.json:
+        sys.stdout.write(json.dumps(result, indent=2, allow_nan=False) + "\n")
+        return 0
+    _print_human(result)
+    return 0
+
+
+def _fmt_res(res):
+    return "x".join(str(x) for x in res)
+
+
+def _fmt_bytes(n):
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if n < 1024 or unit == "GiB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024.0
+    return str(n)
+
+
+def _print_human(result: dict) -> None:
+    from rich.table import Table
+
+    from .cli import _console
+
+    console = _console()
+    unit = "ns/ray" if result["units"] == "ns" else "T_step/ray"
+    cost = result["predicted"]["ns_per_ray"] or result["predicted"].get("cost_t_step")
+    console.print(f"[bold]{result['scene']}[/bold]: {result['triangles']:,} triangles, class "
+                  f"[bold]{result['scene_class']}[/bold] ({result['scene_class_reason']}); fidelity "
+                  f"{result['fidelity']}, {result['rays']} rays")
+    grid = Table(title="recommended grid")
+    for col in ("level", "resolution", "grids", "cells", "references", "memory"):
+        grid.add_column(col, justify="right")
+    for lv in result["levels"]:
+        res = _fmt_res(lv["resolution"]) + (" (median)" if lv.get("resolution_is") else "")
+        grid.add_row(str(lv["level"]), res, f"{lv['grids']:,}", f"{lv['cells']:,}", f"{lv['references']:,.0f}",
+                     _fmt_bytes(lv["memory_bytes"]) if "memory_bytes" in lv else "")
+    console.print(grid)
+    p = result["predicted"]
+    interval = (f"95% interval [{cost['ci95'][0]:.4g}, {cost['ci95'][1]:.4g}]" if result["units"] == "ns"
+                else "no interval without a calibration's posterior")
+    console.print(f"predicted {cost['median']:.4g} {unit}, {interval}; "
+                  f"{p['steps_per_ray']:.4g} steps, {p['tests_per_ray']:.4g} tests, "
+                  f"{p['subgrids_per_ray']:.3g} subgrids per ray; memory {_fmt_bytes(result['memory_bytes'])}")
+    eff = Table(title="effects")
+    eff.add_column("effect")
+    eff.add_column("used")
+    eff.add_column("why")
+    for e in result["effects"]:
+        eff.add_row(e["name"], "yes" if e["used"] else "no", e["reason"])
+    console.print(eff)
+    base = Table(title="baselines (general-model cost, same terms)")
+    base.add_column("heuristic")
+    base.add_column("resolution (per level)")
+    base.add_column(f"model {unit}", justify="right")
+    ours = " / ".join(_fmt_res(lv["resolution"]) for lv in result["levels"])
+    mc = p.get("model_cost_per_ray")
+    base.add_row("[bold]this prediction[/bold]", ours, "-" if mc is None else f"{mc:.4g}")
+    for name, d in result["baselines_detail"].items():
+        c = d.get("cost_per_ray")
+        base.add_row(name, " / ".join(_fmt_res(r) for r in d["levels"]), "-" if c is None else f"{c:.4g}")
+    console.print(base)
+    for n in result["notes"]:
+        console.print(f"note: {n}")
+    console.print(f"prediction time {1000 * result['timing_s']:.1f} ms")

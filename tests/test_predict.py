@@ -1,0 +1,298 @@
+"""`calibrate predict`: the JSON contract, the constants' sources, bad inputs, and each fidelity.
+
+The verb is exercised through its own parser (``calibrate.predict.add_parser`` on a
+``calibrate.cli._Parser``), as ``calibrate.cli.build_parser`` will register it.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from calibrate import calfile, rays
+from calibrate._grid import Grid, Scene
+from calibrate._io import UserError
+from calibrate.cli import _Parser
+from calibrate.predict import (DEFAULT_CALIBRATION, SIM_RAYS, SIM_SEED, add_parser, cmd_predict, fit_count_curves,
+                               predict, resolve_constants)
+from models.closed_forms import cells_to_resolution, lines_cells, points_cells, two_level_points
+from models.effects import select_effects
+from models.general import predict_uniform
+
+#: Planted constants (ns) of the synthetic calibration, and its posterior's relative spread.
+PLANTED_NS = dict(t_setup_ns=20.0, t_step_ns=3.0, t_int_ns=15.0, t_sub_ns=10.0)
+POSTERIOR_REL_SD = 0.05
+N_SAMPLES = 400
+RATIO = 5.0
+REQUIRED_KEYS = ("levels", "predicted", "effects", "baselines", "scene_class", "fidelity", "timing_s")
+
+
+def _parser():
+    p = _Parser(prog="calibrate")
+    sub = p.add_subparsers(dest="verb", parser_class=_Parser)
+    add_parser(sub)
+    return p
+
+
+def _run_json(argv, capsys) -> dict:
+    args = _parser().parse_args(["predict", *argv, "--json"])
+    assert cmd_predict(args) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+def synthetic_calibration(rng: np.random.Generator) -> dict:
+    """A valid calibration whose posterior is lognormal about PLANTED_NS (no fit needed)."""
+    names = list(PLANTED_NS)
+    values = np.stack([PLANTED_NS[n] * np.exp(POSTERIOR_REL_SD * rng.standard_normal(N_SAMPLES)) for n in names]
+                      + [np.full(N_SAMPLES, 0.01)], axis=1)
+
+    def est(x):
+        q = np.percentile(x, [50, 16, 84, 2.5, 97.5])
+        return {"median": float(q[0]), "ci68": [float(q[1]), float(q[2])], "ci95": [float(q[3]), float(q[4])]}
+
+    constants = {n: est(values[:, j]) for j, n in enumerate(names)}
+    constants["ratio"] = est(values[:, 2] / values[:, 1])
+    cal = {"schema_version": calfile.SCHEMA_VERSION, "fingerprint": {"cpu_model": "test"}, "constants": constants,
+           "isolated": {}, "samples": {"columns": names + ["extra_scatter"], "values": values.tolist()},
+           "diagnostics": {"converged": True}, "measurements": [], "meta": {}}
+    return calfile.validate(cal)
+
+
+@pytest.fixture(scope="module")
+def cal_path(tmp_path_factory):
+    path = tmp_path_factory.mktemp("cal") / "calibration.json"
+    calfile.save(path, synthetic_calibration(np.random.default_rng(1000)))
+    return path
+
+
+# --- the JSON contract -------------------------------------------------------------------
+
+
+def _check_contract(out: dict):
+    for key in REQUIRED_KEYS:
+        assert key in out, key
+    assert isinstance(out["levels"], list) and out["levels"]
+    for lv in out["levels"]:
+        res = lv["resolution"]
+        assert len(res) == 3 and all(isinstance(x, int) and x >= 1 for x in res)
+        assert lv["cells"] >= res[0] * res[1] * res[2] and lv["references"] >= 0
+    p = out["predicted"]
+    for key in ("steps_per_ray", "tests_per_ray"):
+        assert math.isfinite(p[key]) and p[key] > 0
+    assert isinstance(out["effects"], list) and out["effects"]
+    for e in out["effects"]:
+        assert isinstance(e["name"], str) and isinstance(e["reason"], str) and e["reason"]
+        assert isinstance(e["used"], bool)
+    assert {"pbrt-v2", "manta-L1", "cleary-lambda5", "kalojanov-2level"} <= set(out["baselines"])
+    for res in out["baselines"].values():
+        assert len(res) == 3 and all(isinstance(x, int) and x >= 1 for x in res)
+    assert out["timing_s"] > 0 and out["memory_bytes"] > 0
+
+
+@pytest.mark.parametrize("fidelity", ["paper", "analytic"])
+def test_json_has_every_field_with_a_calibration(fidelity, cal_path, capsys):
+    out = _run_json(["sphere", "--calibration", str(cal_path), "--fidelity", fidelity, "--levels", "1"], capsys)
+    _check_contract(out)
+    ns = out["predicted"]["ns_per_ray"]
+    assert ns["ci95"][0] < ns["median"] < ns["ci95"][1]
+    assert out["fidelity"] == fidelity and out["units"] == "ns" and out["scene_class"] == "compact"
+
+
+def test_ratio_path_needs_no_calibration(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)  # no ./calibration.json here
+    out = _run_json(["sphere", "--ratio", str(RATIO), "--levels", "1"], capsys)
+    _check_contract(out)
+    p = out["predicted"]
+    assert p["ns_per_ray"] is None and out["units"] == "T_step"
+    # in units of T_step: cost = steps + r * tests (T_setup = 0)
+    assert p["cost_t_step"]["median"] == pytest.approx(p["steps_per_ray"] + RATIO * p["tests_per_ray"], rel=1e-12)
+
+
+def test_synthetic_calibration_flows_through(cal_path, capsys):
+    out = _run_json(["cylinder1996", "--calibration", str(cal_path), "--levels", "1"], capsys)
+    samples = calfile.samples_by_name(calfile.load(cal_path))
+    p = out["predicted"]
+    # the interval is the posterior of T_setup + T_step steps + T_int tests, sample by sample
+    t = samples["t_setup_ns"] + samples["t_step_ns"] * p["steps_per_ray"] + samples["t_int_ns"] * p["tests_per_ray"]
+    assert p["ns_per_ray"]["median"] == pytest.approx(float(np.median(t)), rel=1e-12)
+    assert p["ns_per_ray"]["ci95"] == pytest.approx(list(np.percentile(t, [2.5, 97.5])), rel=1e-12)
+    # the resolution is the models' optimum for the calibration's median constants
+    med = {n: float(np.median(samples[n])) for n in PLANTED_NS}
+    sel = select_effects(Scene.builtin("cylinder1996").stats, med["t_setup_ns"], med["t_step_ns"], med["t_int_ns"])
+    assert tuple(out["levels"][0]["resolution"]) == tuple(sel.resolution)
+    assert out["constants"]["ratio"] == pytest.approx(med["t_int_ns"] / med["t_step_ns"])
+    assert len(p["resolution_ci95"]) == 2
+
+
+def test_default_calibration_is_read_from_the_working_directory(cal_path, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / DEFAULT_CALIBRATION).write_bytes(cal_path.read_bytes())
+    out = _run_json(["--levels", "1"], capsys)  # default scene: sphere
+    assert out["scene"] == "sphere" and out["units"] == "ns"
+
+
+def test_human_output_shows_grid_effects_and_baselines(cal_path, capsys):
+    args = _parser().parse_args(["predict", "room", "--calibration", str(cal_path), "--levels", "1"])
+    assert cmd_predict(args) == 0
+    text = capsys.readouterr().out
+    for word in ("recommended grid", "effects", "baselines", "pbrt-v2", "ns/ray", "class"):
+        assert word in text, word
+
+
+# --- bad inputs ----------------------------------------------------------------------------
+
+
+def test_missing_default_calibration_says_what_to_do(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    args = _parser().parse_args(["predict", "sphere"])
+    with pytest.raises(ValueError, match=r"calibrate run.*--ratio"):
+        cmd_predict(args)
+
+
+def test_missing_calibration_file_is_named(tmp_path):
+    args = _parser().parse_args(["predict", "--calibration", str(tmp_path / "nope.json")])
+    with pytest.raises(ValueError, match=r"nope\.json: no such calibration file"):
+        cmd_predict(args)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--ratio", "-2"], "positive"),
+    (["--ratio", "nan"], "positive"),
+    (["--ratio", "abc"], "number"),
+    (["--fidelity", "exact"], "invalid choice"),
+    (["--levels", "4"], "invalid choice"),
+    (["--rays", "surface"], "invalid choice"),
+    (["--ratio", "5", "--calibration", "x.json"], "not allowed with"),
+])
+def test_bad_command_lines_are_one_line_errors(argv, message):
+    with pytest.raises(UserError, match=message):
+        _parser().parse_args(["predict", *argv])
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    (dict(ratio=RATIO, fidelity="exact"), "unknown fidelity 'exact'"),
+    (dict(ratio=RATIO, levels=4), "unknown levels 4"),
+    (dict(ratio=RATIO, rays="surface"), "unknown ray set"),
+    (dict(ratio=-1.0), "ratio must be a finite number > 0"),
+    (dict(ratio=0.0), "ratio must be a finite number > 0"),
+    (dict(ratio=float("inf")), "ratio must be a finite number > 0"),
+    (dict(), "no calibration"),
+    (dict(ratio=RATIO, constants=PLANTED_NS), "not both"),
+    (dict(constants=dict(t_step_ns=3.0, t_int_ns=15.0)), "lacks t_setup_ns"),
+    (dict(constants=dict(PLANTED_NS, t_step_ns=-3.0)), "t_step_ns must be finite and >= 0"),
+    (dict(ratio=RATIO, mailbox="yes"), "mailbox must be True or False"),
+])
+def test_bad_arguments_raise_value_errors(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        predict("cylinder196", **kwargs)
+
+
+def test_unknown_scene_is_named():
+    with pytest.raises(ValueError, match="neither a mesh file nor a built-in scene"):
+        predict("teapot", ratio=RATIO)
+
+
+# --- fidelities ------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("i, r", list(enumerate([0.5, RATIO, 40.0])))
+def test_paper_fidelity_reproduces_the_closed_forms(i, r):
+    sphere = Scene.builtin("sphere")  # compact: the points law
+    st = sphere.stats
+    out = predict(sphere, ratio=r, fidelity="paper", levels="1")
+    m3 = float(points_cells(st.n_triangles, r))
+    assert out["levels"][0]["resolution"] == list(cells_to_resolution(m3, st.extent))
+    m = m3 ** (1.0 / 3.0)  # the talk's cost: m steps and N / m^2 tests
+    assert out["predicted"]["steps_per_ray"] == pytest.approx(m, rel=1e-12)
+    assert out["predicted"]["tests_per_ray"] == pytest.approx(st.n_triangles / m ** 2, rel=1e-12)
+    # two levels: m1^3 = (2 k^2 N r)^0.6 and m2^3 = (2 N r / k^3)^0.6 with the scene's k
+    out2 = predict(sphere, ratio=r, fidelity="paper", levels="2")
+    m1, m2 = two_level_points(st.n_triangles, r, st.k)
+    assert out2["levels"][0]["resolution"] == list(cells_to_resolution(float(m1), st.extent))
+    sub_extent = st.extent / np.asarray(out2["levels"][0]["resolution"], dtype=np.float64)
+    assert out2["levels"][1]["resolution"] == list(cells_to_resolution(float(m2), sub_extent))
+    assert out2["predicted"]["subgrids_per_ray"] == pytest.approx(st.k, rel=1e-12)  # a ray enters k subgrids
+    # long skinny triangles: the lines law
+    cyl = Scene.builtin("cylinder1996")
+    out3 = predict(cyl, ratio=r, fidelity="paper", levels="1")
+    assert out3["scene_class"] == "long-skinny"
+    assert out3["levels"][0]["resolution"] == list(cells_to_resolution(float(lines_cells(1996, r)),
+                                                                         cyl.stats.extent))
+
+
+def test_analytic_single_level_is_the_models_prediction():
+    scene = Scene.builtin("room")
+    k = resolve_constants(constants=PLANTED_NS)
+    out = predict(scene, constants=PLANTED_NS, fidelity="analytic", levels="1")
+    sel = select_effects(scene.stats, k.t_setup, k.t_step, k.t_int, termination=True)
+    assert tuple(out["levels"][0]["resolution"]) == tuple(sel.resolution)
+    t, steps, tests = predict_uniform(scene.stats, sel.resolution, k.t_setup, k.t_step, k.t_int, terms=sel.terms)
+    assert out["predicted"]["ns_per_ray"]["median"] == pytest.approx(t, rel=1e-12)
+    assert out["predicted"]["steps_per_ray"] == pytest.approx(steps, rel=1e-12)
+    assert out["predicted"]["model_cost_per_ray"] == pytest.approx(t, rel=1e-12)
+    pbrt = out["baselines_detail"]["pbrt-v2"]
+    assert pbrt["cost_per_ray"] == pytest.approx(
+        predict_uniform(scene.stats, pbrt["levels"][0], k.t_setup, k.t_step, k.t_int, terms=sel.terms)[0], rel=1e-12)
+    assert {e["name"] for e in out["effects"]} >= {"edge", "area", "mailbox", "termination", "clustering", "subgrid"}
+    assert [e["used"] for e in out["effects"] if e["name"] == "mailbox"] == [False]
+
+
+def test_analytic_auto_levels_reports_the_depths_it_compared():
+    out = predict("scattered-compact", constants=PLANTED_NS, fidelity="analytic", levels="auto")
+    why = [e["reason"] for e in out["effects"] if e["name"] == "levels"]
+    assert len(why) == 1 and "L=1" in why[0] and "L=2" in why[0]
+    assert 1 <= len(out["levels"]) <= 3
+
+
+def test_fit_count_curves_recovers_planted_coefficients():
+    s = np.array([0.5, 0.7, 1.0, 1.4, 2.0])
+    a, b = fit_count_curves(s, 2.0 + 30.0 * s, 1.0 + 4.0 / s + 9.0 / s ** 2)
+    assert a == pytest.approx([2.0, 30.0], rel=1e-9)
+    assert b == pytest.approx([1.0, 4.0, 9.0], rel=1e-9)
+
+
+@pytest.mark.parametrize("ray_set", ["isotropic", "camera"])
+def test_simulated_counts_are_the_kernels_counts(ray_set):
+    scene = Scene.builtin("scattered-skinny")
+    out = predict(scene, constants=PLANTED_NS, fidelity="simulated", levels="1", rays=ray_set)
+    res = out["levels"][0]["resolution"]
+    gen = rays.camera if ray_set == "camera" else rays.isotropic
+    o, d = gen(scene.box_lo, scene.box_hi, SIM_RAYS, SIM_SEED)
+    steps, tests, _ = Grid.uniform(scene, res).count(o, d)
+    assert out["predicted"]["steps_per_ray"] == pytest.approx(float(steps.mean()), rel=1e-12)
+    assert out["predicted"]["tests_per_ray"] == pytest.approx(float(tests.mean()), rel=1e-12)
+    sim = out["simulation"]
+    assert sim["ray_set"] == ray_set and len(sim["scales"]) >= 3
+    # the chosen scale minimises the fitted curves' cost within the measured range
+    a, b = np.array(sim["steps_fit"]), np.array(sim["tests_fit"])
+    k = resolve_constants(constants=PLANTED_NS)
+    s = np.array(sim["scales"])
+    cost = lambda x: k.t_step * (a[0] + a[1] * x) + k.t_int * (b[0] + b[1] / x + b[2] / x ** 2)  # noqa: E731
+    assert cost(sim["best_scale"]) <= cost(s).min() + 1e-9
+
+
+def test_camera_rays_with_the_analytic_model_say_so():
+    out = predict("cylinder196", ratio=RATIO, fidelity="analytic", levels="1", rays="camera")
+    assert any("camera rays" in n for n in out["notes"])
+
+
+def test_scene_statistics_are_cached_per_scene_object():
+    scene = Scene.builtin("scattered-compact")
+    first = predict(scene, ratio=RATIO, fidelity="analytic", levels="1")
+    stats = scene.stats
+    second = predict(scene, ratio=RATIO, fidelity="analytic", levels="1")
+    assert scene.stats is stats and first["levels"] == second["levels"]
+
+
+@pytest.mark.parametrize("i, res", list(enumerate([(8, 9, 10), (40, 40, 40)])))
+def test_memory_estimate_uses_the_kernels_layout(i, res):
+    from calibrate.predict import _memory_bytes
+
+    scene = Scene.builtin("scattered-compact")
+    info = Grid.uniform(scene, res).info
+    est = _memory_bytes(scene.n_triangles, res[0] * res[1] * res[2], info["n_refs"], 1)
+    # the kernel adds only its fixed-size gc_grid header
+    assert 0 <= info["memory_bytes"] - est < 1024, (info["memory_bytes"], est)

@@ -1,0 +1,121 @@
+"""`calibrate run` end to end on a small suite: the calibration file, interruption and resume.
+
+The suites are shrunk (one small scene, few rays, 2 ms values) so a run takes
+seconds; the timings are real, so only the shape of the output is asserted,
+never a speed.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from calibrate import calfile, run, suites
+from calibrate.cli import main
+from calibrate.protocol import MeasurementInterrupted
+
+
+@pytest.fixture
+def small_suite(monkeypatch):
+    monkeypatch.setattr(suites, "RAYS_PER_BATCH", 256)
+    monkeypatch.setattr(suites, "EMPTY_GRID_SIDES", (1, 2, 4, 8, 16))
+    monkeypatch.setattr(suites, "CELL_TRIANGLE_COUNTS", (1, 8, 64))
+    monkeypatch.setattr(suites, "SUBGRID_SIDES", (2, 4, 8))
+    monkeypatch.setattr(suites, "CONTEXT_SCENES", ("cylinder196", "scattered-skinny"))
+    monkeypatch.setattr(run, "MIN_VALUE_NS", 2_000_000)
+    monkeypatch.setattr(run, "FIRST_ROUNDS", 4)
+
+
+def _interrupt_after(n_values: int):
+    seen = {"n": 0}
+
+    def progress(done, total, label):
+        if total and not label.startswith("warm-up"):
+            seen["n"] += 1
+            if seen["n"] >= n_values:
+                raise KeyboardInterrupt
+
+    return progress
+
+
+def test_run_writes_a_valid_calibration(small_suite, tmp_path):
+    out = tmp_path / "cal.json"
+    result = run.run_calibration(out, budget_s=120, target_rel_width=None, seed=3)
+    cal = calfile.load(out)
+    for key in ("t_setup_ns", "t_step_ns", "t_int_ns", "ratio"):
+        est = cal["constants"][key]
+        assert est["ci95"][0] <= est["median"] <= est["ci95"][1]
+    assert cal["diagnostics"]["converged"] is True
+    kinds = {m["kind"] for m in cal["measurements"]}
+    assert kinds == {"isolated", "in_context"}
+    held = [m for m in cal["measurements"] if m["held_back"]]
+    assert held and all(m["kind"] == "in_context" for m in held)
+    assert np.isfinite(result.holdout_mare) and result.holdout_mare >= 0
+    assert not run.partial_path(out).exists(), "a finished run leaves no partial file"
+    # the stored measurements re-fit without measuring again
+    again = calfile.refit(cal, seed=3)
+    assert again["constants"]["ratio"]["median"] > 0
+
+
+def test_interrupted_run_resumes_to_the_same_kind_of_data(small_suite, tmp_path):
+    out = tmp_path / "cal.json"
+    with pytest.raises(MeasurementInterrupted):
+        run.run_calibration(out, budget_s=120, target_rel_width=None, seed=5, progress=_interrupt_after(40))
+    part = run.partial_path(out)
+    assert part.exists() and not out.exists(), "an interrupted run keeps its values and writes no calibration"
+    saved = json.loads(part.read_text())
+    n_values = sum(len(m["values_ns"]) for m in saved["measurements"].values())
+    assert 0 < n_values <= 40, n_values
+
+    run.run_calibration(out, budget_s=120, target_rel_width=None, seed=5, resume=True)
+    resumed = calfile.load(out)
+    fresh_out = tmp_path / "fresh.json"
+    run.run_calibration(fresh_out, budget_s=120, target_rel_width=None, seed=5)
+    fresh = calfile.load(fresh_out)
+
+    def shape(cal):
+        return sorted((m["name"], m["kind"], m["rays"], m["steps"], m["tests"], m["subgrids"], m["held_back"],
+                       len(m["values_ns"]) >= run.FIRST_ROUNDS) for m in cal["measurements"])
+
+    assert shape(resumed) == shape(fresh)
+    assert not part.exists()
+
+
+def test_resume_without_a_partial_file_is_a_clear_error(small_suite, tmp_path, capsys):
+    code = main(["run", "--resume", "--quiet", "--out", str(tmp_path / "cal.json")])
+    err = capsys.readouterr().err
+    assert code == 2 and "no interrupted run to resume" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("argv,needle", [
+    (["run", "--budget", "0"], "positive"),
+    (["run", "--budget", "abc"], "expected a number"),
+    (["run", "--target-rel-width", "-1"], "positive"),
+    (["run", "--intersector", "nope"], "invalid choice"),
+    (["fit", "missing.json"], "missing.json"),
+    (["show", "missing.json"], "missing.json"),
+    (["frobnicate"], "invalid choice"),
+])
+def test_cli_user_mistakes_are_one_line(argv, needle, capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    code = main(argv)
+    err = capsys.readouterr().err
+    assert code == 2
+    assert needle in err
+    assert err.count("\n") == 1 and err.startswith("calibrate: error:"), err
+
+
+def test_run_json_and_show(small_suite, tmp_path, capsys):
+    out = tmp_path / "cal.json"
+    assert main(["run", "--json", "--quiet", "--budget", "120", "--out", str(out)]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    for key in ("t_setup_ns", "t_step_ns", "t_int_ns", "t_sub_ns", "ratio"):
+        assert key in printed["constants"]
+    assert printed["wall_s"] > 0
+    assert main(["show", str(out), "--json", "--plot", str(tmp_path / "fig")]) == 0
+    shown = json.loads(capsys.readouterr().out)
+    assert shown["constants"] == calfile.load(out)["constants"]
+    for p in shown["plots"]:
+        assert (tmp_path / p).exists() or __import__("pathlib").Path(p).exists()
