@@ -177,7 +177,8 @@ class Scene:
 
     @classmethod
     def from_file(cls, path) -> "Scene":
-        """Load a mesh file in any format trimesh reads (OBJ, PLY, STL, OFF, glTF, ...).
+        """Load a mesh file: OBJ by gridcal's own reader (:mod:`calibrate._obj`), any
+        other format trimesh reads (PLY, STL, OFF, glTF, ...) by trimesh.
 
         Raises ``ValueError`` naming the file when it is missing, unreadable,
         not a triangle mesh, or empty.
@@ -199,6 +200,22 @@ class Scene:
                 raise ValueError(f"{p}: the file is empty")
         except OSError as exc:  # e.g. a name too long for the file system
             raise ValueError(f"{p}: cannot access it ({exc.strerror or type(exc).__name__})") from None
+        if p.suffix.lower() == ".obj":
+            from ._obj import read_obj
+
+            try:
+                text = p.read_bytes().decode("utf-8", errors="strict")
+            except UnicodeDecodeError:
+                raise ValueError(f"{p}: not a text OBJ file (it is not UTF-8 text)") from None
+            except OSError as exc:
+                raise ValueError(f"{p}: cannot read it ({exc.strerror or type(exc).__name__})") from None
+            vertices, faces = read_obj(text, source=str(p))
+            if len(faces) == 0:
+                raise ValueError(f"{p}: holds no faces (is it a point cloud, or truncated?)")
+            try:
+                return cls(vertices, faces, name=p.name)
+            except ValueError as exc:
+                raise ValueError(f"{p}: {exc}") from None
         try:
             loaded = trimesh.load(str(p), force="mesh", process=False)
         except Exception as exc:  # trimesh raises many types for a corrupt file
