@@ -260,9 +260,16 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
         mare = _fit.holdout_error(result, design_held)
         if iso_warning:
             warnings.append(iso_warning)
+        cut = 0
         for r in recs:
             for w in r["warnings"]:
+                if "stopped early" in w:  # the budget's deadline, reported once below
+                    cut += 1
+                    continue
                 warnings.append(f"{r['name']}: {w}")
+        if cut:
+            warnings.append(f"the budget ended the last stage early: {cut} configurations have fewer values "
+                            "than the others (all are used)")
         wall = time.monotonic() - t_start
         meta = dict(tool="gridcal", budget_s=budget_s, target_rel_width=target_rel_width, seed=seed,
                     intersector=intersector, wall_s=wall, stages=stage, rounds=rounds,
