@@ -211,7 +211,7 @@ class Scene:
                 raise ValueError(f"{p}: cannot read it ({exc.strerror or type(exc).__name__})") from None
             vertices, faces = read_obj(text, source=str(p))
             if len(faces) == 0:
-                raise ValueError(f"{p}: holds no faces (is it a point cloud, or truncated?)")
+                raise ValueError(f"{p}: holds no triangles (is it a point cloud, or truncated?)")
             try:
                 return cls(vertices, faces, name=p.name)
             except ValueError as exc:
