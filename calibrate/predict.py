@@ -456,20 +456,19 @@ def _analytic_nested(scene, stats, k: Constants, L, mailbox):
     return plan, effects
 
 
-def _analytic_plan(scene, stats, k: Constants, levels, mailbox):
-    if levels != "auto":
-        L = int(levels)
-        if L == 1:
-            return analytic_uniform_plan(stats, k, mailbox)
-        return _analytic_nested(scene, stats, k, L, mailbox)
-    best = analytic_uniform_plan(stats, k, mailbox)
+def _deepen(k: Constants, uniform, nested, stops, how: str):
+    """Depth by predicted cost per ray incl. T_sub, stopping at the first depth that does not improve.
+
+    uniform() gives the single-level (plan, effects); nested(L) an L-level one,
+    raising one of ``stops`` when that depth cannot be modelled or built."""
+    best = uniform()
     best_ns = k.cost(best[0]["steps"], best[0]["tests"])
     tried = [f"L=1: {best_ns:.4g}"]
     for L in range(2, MAX_LEVELS + 1):
         try:
-            cand = _analytic_nested(scene, stats, k, L, mailbox)
-        except TooManyPairs:
-            tried.append(f"L={L}: too many triangle-cell pairs to model")
+            cand = nested(L)
+        except stops as exc:
+            tried.append(f"L={L}: not modelled ({exc})")
             break
         ns = k.cost(cand[0]["steps"], cand[0]["tests"], cand[0]["subgrids"])
         tried.append(f"L={L}: {ns:.4g}")
@@ -477,9 +476,19 @@ def _analytic_plan(scene, stats, k: Constants, levels, mailbox):
             break
         best, best_ns = cand, ns
     best[1].append(dict(name="levels", used=True, change=0.0,
-                        reason=(f"depth by predicted cost per ray incl. T_sub ({k.units}), stopping at the first "
+                        reason=(f"depth by {how} cost per ray incl. T_sub ({k.units}), stopping at the first "
                                 "depth that does not improve: " + ", ".join(tried))))
     return best
+
+
+def _analytic_plan(scene, stats, k: Constants, levels, mailbox):
+    if levels != "auto":
+        L = int(levels)
+        if L == 1:
+            return analytic_uniform_plan(stats, k, mailbox)
+        return _analytic_nested(scene, stats, k, L, mailbox)
+    return _deepen(k, lambda: analytic_uniform_plan(stats, k, mailbox),
+                   lambda L: _analytic_nested(scene, stats, k, L, mailbox), (TooManyPairs,), "predicted")
 
 
 # ---------------------------------------------------------------------------------------
@@ -625,24 +634,9 @@ def _simulated_plan(scene, stats, k: Constants, levels, rays, mailbox):
         if L == 1:
             return _simulated_uniform(scene, stats, k, rays, mailbox)
         return _simulated_nested(scene, stats, k, L, rays, mailbox)
-    best = _simulated_uniform(scene, stats, k, rays, mailbox)
-    best_ns = k.cost(best[0]["steps"], best[0]["tests"])
-    tried = [f"L=1: {best_ns:.4g}"]
-    for L in range(2, MAX_LEVELS + 1):
-        try:
-            cand = _simulated_nested(scene, stats, k, L, rays, mailbox)
-        except (TooManyPairs, ValueError) as exc:
-            tried.append(f"L={L}: not built ({exc})")
-            break
-        ns = k.cost(cand[0]["steps"], cand[0]["tests"], cand[0]["subgrids"])
-        tried.append(f"L={L}: {ns:.4g}")
-        if ns >= best_ns:
-            break
-        best, best_ns = cand, ns
-    best[1].append(dict(name="levels", used=True, change=0.0,
-                        reason=(f"depth by simulated cost per ray incl. T_sub ({k.units}), stopping at the first "
-                                "depth that does not improve: " + ", ".join(tried))))
-    return best
+    return _deepen(k, lambda: _simulated_uniform(scene, stats, k, rays, mailbox),
+                   lambda L: _simulated_nested(scene, stats, k, L, rays, mailbox), (TooManyPairs, ValueError),
+                   "simulated")
 
 
 # ---------------------------------------------------------------------------------------

@@ -171,10 +171,10 @@ def context_configs(intersector: str, seed: int = 0, scenes=CONTEXT_SCENES) -> l
         grids = []
         for c in multiples:
             res = resolution_for_cells(min(c * n, MAX_SUITE_CELLS), ext)
-            grids.append((_res_label(res), lambda res=res: Grid.uniform(scene, res, intersector)))
+            grids.append((_res_label(res), lambda res=res, scene=scene: Grid.uniform(scene, res, intersector)))
         for levels in CONTEXT_LEVELS:
-            grids.append((f"L{levels}", lambda levels=levels: Grid.nested(scene, levels=levels,
-                                                                         intersector=intersector)))
+            grids.append((f"L{levels}", lambda levels=levels, scene=scene: Grid.nested(
+                scene, levels=levels, intersector=intersector)))
         for ri, ray_set in enumerate(CONTEXT_RAY_SETS):
             o, d = _rays(scene, ray_set, seed + 100 * si + ri)
             for label, build in grids:
