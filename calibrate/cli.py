@@ -75,14 +75,19 @@ class _Progress:
             self._bar.__exit__(*exc)
 
 
-def _positive_float(text: str) -> float:
-    try:
-        x = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not (math.isfinite(x) and x > 0):
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
-    return x
+def positive_number(what: str = "the value"):
+    """An argparse type: a finite number > 0, with messages naming ``what``."""
+
+    def parse(text: str) -> float:
+        try:
+            x = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{what} must be a number, got {text!r}") from None
+        if not (math.isfinite(x) and x > 0):
+            raise argparse.ArgumentTypeError(f"{what} must be a positive number, got {text!r}")
+        return x
+
+    return parse
 
 
 def _print_json(obj) -> None:
@@ -249,9 +254,9 @@ def build_parser() -> argparse.ArgumentParser:
         return sp
 
     sp = verb("run", "measure T_setup, T_step, T_int and T_sub on this host and fit them")
-    sp.add_argument("--budget", type=_positive_float, default=60.0, metavar="SECONDS",
+    sp.add_argument("--budget", type=positive_number("the budget in seconds"), default=60.0, metavar="SECONDS",
                     help="wall-clock budget (default 60)")
-    sp.add_argument("--target-rel-width", type=_positive_float, default=0.06, metavar="W",
+    sp.add_argument("--target-rel-width", type=positive_number("the target relative width"), default=0.06, metavar="W",
                     help="stop once r's 95%% interval, relative to its median, is narrower than W (default 0.06)")
     sp.add_argument("--out", default=DEFAULT_CALIBRATION, metavar="FILE", help="calibration file to write")
     sp.add_argument("--intersector", default="watertight", choices=["watertight", "moller-trumbore"])

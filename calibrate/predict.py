@@ -758,20 +758,10 @@ def _plain(x):
 # command line
 # ---------------------------------------------------------------------------------------
 
-def _ratio_arg(text: str) -> float:
-    import argparse
-
-    try:
-        x = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number T_int/T_step, got {text!r}") from None
-    if not (math.isfinite(x) and x > 0):
-        raise argparse.ArgumentTypeError(f"the ratio T_int/T_step must be a positive number, got {text!r}")
-    return x
-
-
 def add_parser(sub):
     """Register the ``predict`` verb on an argparse subparsers object; returns its parser."""
+    from .cli import positive_number
+
     help_text = "predict the optimal uniform or nested grid for a mesh and its cost per ray"
     sp = sub.add_parser("predict", help=help_text, description=help_text)
     sp.add_argument("--json", action="store_true", help="machine-readable output on stdout")
@@ -781,7 +771,7 @@ def add_parser(sub):
     src = sp.add_mutually_exclusive_group()
     src.add_argument("--calibration", metavar="FILE",
                      help=f"calibration file (default ./{DEFAULT_CALIBRATION} when it exists)")
-    src.add_argument("--ratio", type=_ratio_arg, metavar="R",
+    src.add_argument("--ratio", type=positive_number("the ratio T_int/T_step"), metavar="R",
                      help="predict from your own T_int/T_step alone; costs then in units of T_step")
     sp.add_argument("--fidelity", default="analytic", choices=FIDELITIES)
     sp.add_argument("--levels", default="auto", choices=LEVEL_CHOICES)

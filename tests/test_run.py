@@ -91,7 +91,7 @@ def test_resume_without_a_partial_file_is_a_clear_error(small_suite, tmp_path, c
 
 @pytest.mark.parametrize("argv,needle", [
     (["run", "--budget", "0"], "positive"),
-    (["run", "--budget", "abc"], "expected a number"),
+    (["run", "--budget", "abc"], "must be a number"),
     (["run", "--target-rel-width", "-1"], "positive"),
     (["run", "--intersector", "nope"], "invalid choice"),
     (["fit", "missing.json"], "missing.json"),
