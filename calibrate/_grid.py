@@ -14,6 +14,7 @@ import math
 import numbers
 import os
 import reprlib
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -132,6 +133,30 @@ def _check_vertices_faces(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
     return v, f
 
 
+def compiled_scene_stats(vertices, faces):
+    """:func:`models.stats.scene_stats` with its pass over the triangles done by the kernels.
+
+    The C pass (kernels/stats.c) mirrors the numpy reference term by term; the two
+    agree to rounding (tests/test_model_stats_compiled.py) and share
+    :func:`models.stats.stats_from_sums`, which turns the sums into statistics.
+    """
+    from models.stats import aspect_sample_stride, stats_from_sums
+
+    v = np.ascontiguousarray(vertices, dtype=np.float64)
+    f = np.ascontiguousarray(faces, dtype=np.int64)
+    if f.ndim != 2 or f.shape[0] == 0:
+        raise ValueError("mesh has no faces")
+    # The two passes release the GIL: the edge sort runs beside the sums.
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        watertight = pool.submit(_kernels.mesh_watertight, v, f)
+        sums = _kernels.mesh_sums(v, f, aspect_sample_stride(f.shape[0]))
+        watertight = watertight.result()
+    return stats_from_sums(n_triangles=f.shape[0], box_lo=sums["box_lo"], box_hi=sums["box_hi"],
+                           e1_axes=sums["e1"], e2_axes=sums["e2"], perimeters=sums["perimeters"],
+                           pair_sums=sums["pair"], triple=sums["triple"], area=sums["area"], vol6=sums["vol6"],
+                           n_good=sums["n_good"], aspect_sample=sums["aspect_sample"], watertight=watertight)
+
+
 class Scene:
     """A triangle mesh ready for gridding.
 
@@ -165,11 +190,9 @@ class Scene:
 
     @property
     def stats(self):
-        """The scene statistics of :func:`models.stats.scene_stats` (computed once)."""
+        """The scene statistics of :func:`models.stats.scene_stats` (computed once, in C)."""
         if self._stats is None:
-            from models.stats import scene_stats
-
-            self._stats = scene_stats(self.vertices, self.faces)
+            self._stats = compiled_scene_stats(self.vertices, self.faces)
         return self._stats
 
     def __repr__(self) -> str:

@@ -414,6 +414,86 @@ static PyObject *py_triangle_box_overlap(PyObject *self, PyObject *args)
     return PyBool_FromLong(gc_triangle_box_overlap(v[0], v[1], v[2], v[3], v[4]));
 }
 
+static PyObject *py_mesh_sums(PyObject *self, PyObject *args)
+{
+    (void)self;
+    PyObject *vobj, *fobj;
+    long long stride;
+    if (!PyArg_ParseTuple(args, "OOL", &vobj, &fobj, &stride)) {
+        return NULL;
+    }
+    if (stride < 1) {
+        PyErr_SetString(PyExc_ValueError, "stride must be >= 1");
+        return NULL;
+    }
+    PyArrayObject *v = as_rows3(vobj, NPY_FLOAT64, "vertices");
+    PyArrayObject *f = v ? as_rows3(fobj, NPY_INT64, "faces") : NULL;
+    if (!f) {
+        Py_XDECREF(v);
+        return NULL;
+    }
+    npy_intp nf = PyArray_DIM(f, 0);
+    npy_intp room = nf ? (nf - 1) / (npy_intp)stride + 1 : 0;
+    PyArrayObject *ar = (PyArrayObject *)PyArray_SimpleNew(1, &room, NPY_FLOAT64);
+    if (!ar) {
+        Py_DECREF(v), Py_DECREF(f);
+        return NULL;
+    }
+    gc_mesh mesh = {(const double *)PyArray_DATA(v), (int64_t)PyArray_DIM(v, 0),
+                    (const int64_t *)PyArray_DATA(f), (int64_t)nf};
+    gc_mesh_sums sums;
+    int64_t n_ar = 0;
+    char err[GC_ERROR_LEN] = "";
+    gc_status st;
+    Py_BEGIN_ALLOW_THREADS st = gc_mesh_sums_compute(&mesh, (int64_t)stride, PyArray_DATA(ar), &n_ar,
+                                                     &sums, err);
+    Py_END_ALLOW_THREADS Py_DECREF(v);
+    Py_DECREF(f);
+    if (st != GC_OK) {
+        Py_DECREF(ar);
+        return raise_status(st, err);
+    }
+    PyObject *sample = PySequence_GetSlice((PyObject *)ar, 0, (Py_ssize_t)n_ar);
+    Py_DECREF(ar);
+    if (!sample) {
+        return NULL;
+    }
+#define TRIPLE(x) (x)[0], (x)[1], (x)[2]
+    return Py_BuildValue("{s:(ddd),s:(ddd),s:(ddd),s:(ddd),s:(ddd),s:(ddd),s:d,s:d,s:d,s:L,s:N}",
+                         "box_lo", TRIPLE(sums.box_lo), "box_hi", TRIPLE(sums.box_hi), "e1", TRIPLE(sums.e1),
+                         "e2", TRIPLE(sums.e2), "perimeters", TRIPLE(sums.perimeters), "pair",
+                         TRIPLE(sums.pair), "triple", sums.triple, "area", sums.area, "vol6", sums.vol6,
+                         "n_good", (long long)sums.n_good, "aspect_sample", sample);
+#undef TRIPLE
+}
+
+static PyObject *py_mesh_watertight(PyObject *self, PyObject *args)
+{
+    (void)self;
+    PyObject *vobj, *fobj;
+    if (!PyArg_ParseTuple(args, "OO", &vobj, &fobj)) {
+        return NULL;
+    }
+    PyArrayObject *v = as_rows3(vobj, NPY_FLOAT64, "vertices");
+    PyArrayObject *f = v ? as_rows3(fobj, NPY_INT64, "faces") : NULL;
+    if (!f) {
+        Py_XDECREF(v);
+        return NULL;
+    }
+    gc_mesh mesh = {(const double *)PyArray_DATA(v), (int64_t)PyArray_DIM(v, 0),
+                    (const int64_t *)PyArray_DATA(f), (int64_t)PyArray_DIM(f, 0)};
+    int wt = 0;
+    char err[GC_ERROR_LEN] = "";
+    gc_status st;
+    Py_BEGIN_ALLOW_THREADS st = gc_mesh_watertight(&mesh, &wt, err);
+    Py_END_ALLOW_THREADS Py_DECREF(v);
+    Py_DECREF(f);
+    if (st != GC_OK) {
+        return raise_status(st, err);
+    }
+    return PyBool_FromLong(wt);
+}
+
 static PyObject *py_timer_resolution_ns(PyObject *self, PyObject *args)
 {
     (void)self;
@@ -435,6 +515,9 @@ static PyMethodDef methods[] = {
      "brute_force(vertices, faces, intersector, origins, directions) -> (t, prim)"},
     {"triangle_box_overlap", py_triangle_box_overlap, METH_VARARGS,
      "triangle_box_overlap(v0, v1, v2, lo, hi) -> bool"},
+    {"mesh_sums", py_mesh_sums, METH_VARARGS,
+     "mesh_sums(vertices, faces, stride) -> dict of the scene sums (models.stats)"},
+    {"mesh_watertight", py_mesh_watertight, METH_VARARGS, "mesh_watertight(vertices, faces) -> bool"},
     {"timer_resolution_ns", py_timer_resolution_ns, METH_NOARGS, "clock_getres of CLOCK_MONOTONIC"},
     {NULL, NULL, 0, NULL}};
 

@@ -167,6 +167,31 @@ gc_status gc_brute_force(const gc_mesh *mesh, gc_intersector intersector, int64_
 int gc_triangle_box_overlap(const double v0[3], const double v1[3], const double v2[3],
                             const double lo[3], const double hi[3]);
 
+/* The scene sums of the cost model (models/stats.py defines them), one pass.
+ * Bounds are over the faces' corners; e1, e2 and perimeters are per axis. */
+typedef struct {
+    double box_lo[3], box_hi[3];
+    double e1[3];          /* sum of triangle bounding-box extents */
+    double e2[3];          /* sum of areas projected along each axis */
+    double perimeters[3];  /* sum of perimeters projected along each axis */
+    double pair[3];        /* sum ext_y ext_z, sum ext_z ext_x, sum ext_x ext_y */
+    double triple;         /* sum ext_x ext_y ext_z */
+    double area;           /* total area */
+    double vol6;           /* 6 x signed volume, corners taken relative to the centre of
+                              all vertices' bounds (as models/stats.py does) */
+    int64_t n_good;        /* triangles that are not degenerate */
+} gc_mesh_sums;
+
+/* Fill *out.  When ar_out is given, the aspect ratio longest_edge^2 / (2 area) of
+ * every non-degenerate triangle whose index is a multiple of ar_stride is
+ * written there (room for ceil(n_faces / ar_stride) values) and counted in *n_ar. */
+gc_status gc_mesh_sums_compute(const gc_mesh *mesh, int64_t ar_stride,
+                               double *ar_out, int64_t *n_ar, gc_mesh_sums *out, char *err);
+
+/* *watertight = 1 when every edge is shared by exactly two faces, after merging
+ * vertices at identical positions (-0.0 and +0.0 are one position). */
+gc_status gc_mesh_watertight(const gc_mesh *mesh, int *watertight, char *err);
+
 /* Resolution of the monotonic clock in ns. */
 int64_t gc_timer_resolution_ns(void);
 

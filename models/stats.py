@@ -379,12 +379,32 @@ def scene_stats(vertices, faces, *, topology=True) -> SceneStats:
         if topology:  # 6 x signed volume, corners relative to the centre c: (p0-c).(u x w)
             vol6 += float(np.einsum("ij,ij->", p0 - centre[:, None], cross))
         n_good += int(np.count_nonzero(2.0 * area > DEGENERATE_REL_AREA * lsq))
-    n_deg = n - n_good
-    stride = max(1, n // AR_SAMPLE_TRIANGLES)
+    stride = aspect_sample_stride(n)
     sample = [c[::stride] for c in corners] if stride > 1 else corners
     _, _, _, _, area, lsq, _ = _chunk_geometry(v3, sample, 0, sample[0].shape[0])
     good = 2.0 * area > DEGENERATE_REL_AREA * lsq
-    ar = lsq[good] / (2.0 * area[good])
+    return stats_from_sums(
+        n_triangles=n, box_lo=box_lo, box_hi=box_hi, e1_axes=e1, e2_axes=e2, perimeters=per, pair_sums=pair,
+        triple=triple, area=area_sum, vol6=vol6, n_good=n_good, aspect_sample=lsq[good] / (2.0 * area[good]),
+        watertight=is_watertight(v, f) if topology else False)
+
+
+def aspect_sample_stride(n_triangles: int) -> int:
+    """Stride of the triangles whose aspect ratios estimate the percentiles (1: all of them)."""
+    return max(1, int(n_triangles) // AR_SAMPLE_TRIANGLES)
+
+
+def stats_from_sums(*, n_triangles, box_lo, box_hi, e1_axes, e2_axes, perimeters, pair_sums, triple, area, vol6,
+                    n_good, aspect_sample, watertight) -> SceneStats:
+    """SceneStats from the sums of one pass over the triangles (see :func:`scene_stats`).
+
+    ``box_lo``/``box_hi`` are the triangles' bounds (the grid box is derived here),
+    ``vol6`` six times the signed enclosed volume, ``aspect_sample`` the aspect ratios
+    of the non-degenerate triangles among every :func:`aspect_sample_stride`-th one.
+    A fast implementation of the pass (e.g. compiled) hands its sums to this function,
+    so both share every rule that turns sums into statistics.
+    """
+    ar = np.asarray(aspect_sample, dtype=np.float64)
     if ar.size:
         ar_med, ar_p95 = (float(x) for x in np.percentile(ar, [50.0, 95.0]))
     else:
@@ -392,14 +412,16 @@ def scene_stats(vertices, faces, *, topology=True) -> SceneStats:
     lo_b, hi_b = grid_box(box_lo, box_hi)
     extent = hi_b - lo_b
     volume, surface = box_volume_surface(extent)
-    wt = is_watertight(v, f) if topology else False
+    e1 = np.asarray(e1_axes, dtype=np.float64)
+    e2 = np.asarray(e2_axes, dtype=np.float64)
     e2_total = float(e2.sum())
     return SceneStats(
-        n_triangles=int(n), box_lo=lo_b, box_hi=hi_b, extent=extent, volume=volume, surface=surface,
-        e1=float(e1.sum()), e1_axes=e1, e2=e2_total, e2_axes=e2, perimeters=per, bbox_pair_sums=pair,
-        bbox_triple_sum=float(triple), area=area_sum, k=e2_total / volume ** (2.0 / 3.0),
-        aspect_median=ar_med, aspect_p95=ar_p95, n_degenerate=n_deg, watertight=wt,
-        enclosed_volume=abs(vol6) / 6.0 if wt else 0.0)
+        n_triangles=int(n_triangles), box_lo=lo_b, box_hi=hi_b, extent=extent, volume=volume, surface=surface,
+        e1=float(e1.sum()), e1_axes=e1, e2=e2_total, e2_axes=e2,
+        perimeters=np.asarray(perimeters, dtype=np.float64), bbox_pair_sums=np.asarray(pair_sums, dtype=np.float64),
+        bbox_triple_sum=float(triple), area=float(area), k=e2_total / volume ** (2.0 / 3.0),
+        aspect_median=ar_med, aspect_p95=ar_p95, n_degenerate=int(n_triangles) - int(n_good),
+        watertight=bool(watertight), enclosed_volume=abs(float(vol6)) / 6.0 if watertight else 0.0)
 
 
 def scene_class(stats: SceneStats) -> tuple[str, str]:

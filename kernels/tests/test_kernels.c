@@ -418,8 +418,81 @@ static void test_scaled_scenes(void)
     }
 }
 
+
+/* The unit cube as 12 triangles over 8 shared corners (outward, counter-clockwise). */
+static const double CUBE_V[8][3] = {{0, 0, 0}, {1, 0, 0}, {1, 1, 0}, {0, 1, 0},
+                                    {0, 0, 1}, {1, 0, 1}, {1, 1, 1}, {0, 1, 1}};
+static const int64_t CUBE_F[12][3] = {{0, 2, 1}, {0, 3, 2}, {4, 5, 6}, {4, 6, 7}, {0, 1, 5}, {0, 5, 4},
+                                      {1, 2, 6}, {1, 6, 5}, {2, 3, 7}, {2, 7, 6}, {3, 0, 4}, {3, 4, 7}};
+
+static int cube_watertight(const double *v, int64_t nv, const int64_t *f, int64_t nf)
+{
+    gc_mesh mesh = {v, nv, f, nf};
+    int wt = -1;
+    char err[GC_ERROR_LEN];
+    CHECK(gc_mesh_watertight(&mesh, &wt, err) == GC_OK, "watertight: %s", err);
+    return wt;
+}
+
+/* Scene sums of the unit cube, known in closed form; watertightness of its variants. */
+static void test_mesh_sums(void)
+{
+    gc_mesh mesh = {&CUBE_V[0][0], 8, &CUBE_F[0][0], 12};
+    gc_mesh_sums s;
+    double ar[12];
+    int64_t n_ar = -1;
+    char err[GC_ERROR_LEN];
+    CHECK(gc_mesh_sums_compute(&mesh, 5, ar, &n_ar, &s, err) == GC_OK, "sums: %s", err);
+    for (int a = 0; a < 3; ++a) {
+        /* 8 of the 12 triangles span each axis; 4 project with area 1/2 along it; every
+         * triangle not perpendicular to the axis projects legs 1, 1 and diagonal 1 or sqrt 2. */
+        CHECK(s.box_lo[a] == 0.0 && s.box_hi[a] == 1.0, "cube box axis %d", a);
+        CHECK(s.e1[a] == 8.0, "cube e1[%d] = %g, want 8", a, s.e1[a]);
+        CHECK(s.e2[a] == 2.0, "cube e2[%d] = %g, want 2", a, s.e2[a]);
+        CHECK(s.pair[a] == 4.0, "cube pair[%d] = %g, want 4", a, s.pair[a]);
+    }
+    /* along an axis: 4 perpendicular triangles keep their full perimeter 2 + sqrt 2; the 8
+     * others project to segments: legs 1 and 0 and diagonal 1 -> 2 (counted twice). */
+    double want_per = 4.0 * (2.0 + sqrt(2.0)) + 8.0 * 2.0;
+    CHECK(fabs(s.perimeters[0] - want_per) < 1e-12, "cube perimeter %.17g, want %.17g", s.perimeters[0],
+          want_per);
+    CHECK(s.triple == 0.0 && s.area == 6.0 && s.n_good == 12, "cube triple %g area %g good %lld", s.triple,
+          s.area, (long long)s.n_good);
+    CHECK(fabs(s.vol6 - 6.0) < 1e-15, "cube 6 x volume = %.17g, want 6", s.vol6);
+    CHECK(n_ar == 3 && ar[0] == 2.0 && ar[1] == 2.0 && ar[2] == 2.0, "cube aspect sample: %lld values",
+          (long long)n_ar); /* triangles 0, 5, 10: right isosceles, AR = 2 */
+
+    CHECK(cube_watertight(&CUBE_V[0][0], 8, &CUBE_F[0][0], 12) == 1, "closed cube not watertight");
+    CHECK(cube_watertight(&CUBE_V[0][0], 8, &CUBE_F[0][0], 10) == 0, "open cube called watertight");
+    int64_t twice[24][3];
+    memcpy(twice, CUBE_F, sizeof CUBE_F);
+    memcpy(twice[12], CUBE_F, sizeof CUBE_F);
+    CHECK(cube_watertight(&CUBE_V[0][0], 8, &twice[0][0], 24) == 0, "doubled cube (4 faces/edge) watertight");
+    /* split vertices: every face gets its own three corners, one of them at -0.0 */
+    double split[36][3];
+    int64_t sf[12][3];
+    for (int t = 0; t < 12; ++t) {
+        for (int k = 0; k < 3; ++k) {
+            memcpy(split[3 * t + k], CUBE_V[CUBE_F[t][k]], sizeof split[0]);
+            sf[t][k] = 3 * t + k;
+        }
+    }
+    split[0][0] = -0.0;
+    CHECK(cube_watertight(&split[0][0], 36, &sf[0][0], 12) == 1, "split-vertex cube not watertight");
+    split[0][0] = 1e-300;
+    CHECK(cube_watertight(&split[0][0], 36, &sf[0][0], 12) == 0, "moved corner still watertight");
+    int64_t bad[3] = {0, 1, 8};
+    gc_mesh bm = {&CUBE_V[0][0], 8, bad, 1};
+    int wt;
+    CHECK(gc_mesh_watertight(&bm, &wt, err) == GC_ERR_ARGUMENT && strstr(err, "out of range"),
+          "out-of-range index accepted");
+    CHECK(gc_mesh_sums_compute(&bm, 1, NULL, NULL, &s, err) == GC_ERR_ARGUMENT,
+          "out-of-range index accepted by the sums");
+}
+
 int main(void)
 {
+    test_mesh_sums();
     test_refusals();
     test_grids_match_brute_force();
     test_axis_parallel_and_cell_faces();

@@ -1,0 +1,55 @@
+"""Benchmark: time to predict, per fidelity, for a mesh of about a million triangles.
+
+    python tests/benchmarks/predict_speed.py [--triangles N] [--repeats K]
+
+"After loading" means from a Scene already in memory (the mesh read and
+validated) to the recommendation: the scene statistics are part of the time.
+Each fidelity gets a fresh Scene per repeat so nothing is cached between them;
+the minimum and median over repeats are printed (a shared machine is noisy).
+Not a test: the goal (analytic at most 50 ms) is read off the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+from calibrate import Scene
+from calibrate.predict import predict
+from calibrate.scenes import sphere_mesh
+from models.stats import scene_stats
+
+CASES = [("statistics, numpy reference", None, None), ("statistics, compiled", "stats", None),
+         ("paper", "paper", "1"), ("analytic, 1 level", "analytic", "1"), ("analytic, auto levels", "analytic", "auto"),
+         ("simulated, 1 level", "simulated", "1")]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--triangles", type=int, default=1_000_000)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--skip", nargs="*", default=[], help="case names to skip (e.g. simulated)")
+    args = ap.parse_args()
+    v, f = sphere_mesh(args.triangles)
+    print(f"mesh: displaced sphere, {len(f):,} triangles, {len(v):,} vertices")
+    print(f"{'case':32s} {'min ms':>10s} {'median ms':>10s}")
+    for label, fidelity, levels in CASES:
+        if any(s in label for s in args.skip):
+            continue
+        times = []
+        for _ in range(args.repeats if fidelity not in ("simulated",) and levels != "auto" else 1):
+            scene = Scene(v, f, name="sphere-1M")
+            t0 = time.perf_counter()
+            if fidelity is None:
+                scene_stats(scene.vertices, scene.faces)
+            elif fidelity == "stats":
+                scene.stats
+            else:
+                predict(scene, fidelity=fidelity, levels=levels, ratio=1.0)
+            times.append(time.perf_counter() - t0)
+        print(f"{label:32s} {1e3 * min(times):10.1f} {1e3 * statistics.median(times):10.1f}")
+
+
+if __name__ == "__main__":
+    main()
