@@ -171,7 +171,7 @@ def _chunk_geometry(v3, corners, a, b):
     sq = [u * u, e1 * e1, w * w]  # squared edge components, (3, n) each
     tot = [x.sum(axis=0) for x in sq]  # squared edge lengths
     # Perimeter of T projected along axis i: sum over edges of the length without component i.
-    proj_perimeter = sum(np.sqrt(np.maximum(t - x, 0.0)) for t, x in zip(tot, sq))
+    proj_perimeter = sum(np.sqrt(np.maximum(t - x, 0.0)) for t, x in zip(tot, sq, strict=True))
     longest_sq = np.maximum(np.maximum(tot[0], tot[1]), tot[2])
     return lo, hi, cross, proj_perimeter, area, longest_sq, p0
 

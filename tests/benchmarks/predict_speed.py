@@ -44,7 +44,7 @@ def main() -> None:
             if fidelity is None:
                 scene_stats(scene.vertices, scene.faces)
             elif fidelity == "stats":
-                scene.stats
+                _ = scene.stats
             else:
                 predict(scene, fidelity=fidelity, levels=levels, ratio=1.0)
             times.append(time.perf_counter() - t0)
