@@ -98,7 +98,8 @@ def _c_functions() -> str:
 #define GRIDCAL_MIXED 2       /* neither: the points law, as calibrate predict uses */
 #define GRIDCAL_MAX_LEVELS {P.MAX_LEVELS}  /* deepest nested grid */
 
-/* ---- clamps (models.closed_forms): cells per axis and cells per (sub)grid ----------- */
+/* ---- clamps (models.closed_forms): cells per axis and cells per (sub)grid -----------
+ * Overriding these departs from gridcal's predictions, which use these values. */
 #ifndef GRIDCAL_MAX_CELLS_PER_AXIS
 #define GRIDCAL_MAX_CELLS_PER_AXIS {P.MAX_CELLS_PER_AXIS}
 #endif
@@ -112,9 +113,10 @@ def _c_functions() -> str:
 #error "GRIDCAL_MAX_TOTAL_CELLS must be in [1, 2^31 - 1]"
 #endif
 
-/* ---- portable arithmetic (models.portable): + - * / sqrt floor frexp ldexp only ------
- * Our own log/exp so every platform gives the same bits.  Build without -ffast-math and
- * with -ffp-contract=off (no fused multiply-add) for results identical to Python's. */
+/* ---- portable arithmetic (models.portable): + - * / and exact C99 functions only ----
+ * (sqrt floor fmod fabs frexp ldexp nextafter).  Our own log/exp, so every platform gives
+ * the same bits.  Build without -ffast-math and with -ffp-contract=off (no fused
+ * multiply-add) for results identical to Python's. */
 
 static inline int gridcal_finite_(double x) {{ return x == x && x != HUGE_VAL && x != -HUGE_VAL; }}
 static inline int gridcal_positive_(double x) {{ return gridcal_finite_(x) && x > 0.0; }}
@@ -494,6 +496,13 @@ def header_text(cal: dict | None = None, ratio: float | None = None, source: str
               " * (NaN/Inf, hi < lo, n/r out of range) and write 1 1 1.  They equal gridcal's Python",
               " * predictions (models.portable) bit for bit when built with -ffp-contract=off and",
               " * without -ffast-math.  Link with -lm.",
+              " *",
+              " * Use: lo, hi = the scene's bounding box; n = triangles; e1 = sum over triangles of",
+              " * their bounding-box extents x + y + z (when known).  int res[3];",
+              " *   gridcal_general(n, e1, lo, hi, res);           any mesh, single level",
+              " *   gridcal_compact(n, lo, hi, res);               the talk's points law (also _long_skinny, _mixed)",
+              " *   gridcal_nested(GRIDCAL_COMPACT, 2, 1, n, lo, hi, 6.0, res);  top of a 2-level grid",
+              " *   gridcal_nested(GRIDCAL_COMPACT, 2, 2, n, lo, hi, 6.0, res);  each of its subgrids",
               " */",
               "#ifndef GRIDCAL_GRID_TUNING_H",
               "#define GRIDCAL_GRID_TUNING_H",
