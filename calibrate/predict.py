@@ -42,10 +42,11 @@ from pathlib import Path
 import numpy as np
 
 from models import baselines as _baselines
-from models.closed_forms import K_CUBE, cells_to_resolution, l_level_cells
+from models.closed_forms import cells_to_resolution, l_level_cells
 from models.effects import select_effects, termination_fraction
 from models.general import Terms, expected_refs, predict_uniform, steps_per_ray
 from models.nested import MAX_LEVELS, TooManyPairs, clustering_change, nested_counts
+from models.portable import paper_k, paper_level_cells
 from models.stats import scene_class, triangle_geometry
 from models.uncertainty import posterior_optimum, summarise
 
@@ -288,7 +289,9 @@ def paper_plan(stats, cls, k: Constants, levels):
 
     stats : SceneStats; cls : scene class ("compact" | "long-skinny" | "mixed"; mixed
     uses the points law); k : :class:`Constants`; levels : "auto" | "1" | "2" | "3".
-    Cells per level from :func:`models.closed_forms.l_level_cells` with the scene's
+    Cells per level from :func:`models.portable.paper_level_cells` (the portable form of
+    :func:`models.closed_forms.l_level_cells`, so ``calibrate export``'s header gives the
+    same resolutions: :func:`models.portable.paper_resolutions`) with the scene's
     ``k = E2 / V^(2/3)``; counts per ray from the talk's cube model with ``m_l = M_l^(1/3)``:
     ``steps = sum_l k^(l-1) m_l``, ``subgrids = sum_{l>=2} k^(l-1)``, leaf tests
     ``k^(L-1) n_L / m_L^2`` (points) or ``/ m_L`` (lines), ``n_{l+1} = n_l / (k m_l^2)``
@@ -298,12 +301,12 @@ def paper_plan(stats, cls, k: Constants, levels):
     ``steps``, ``tests``, ``subgrids`` (per ray), ``memory_bytes``; effects a list of dicts.
     """
     kind = "lines" if cls == "long-skinny" else "points"
-    kk = max(float(stats.k), 1e-3) if np.isfinite(stats.k) else K_CUBE
+    kk = paper_k(stats.k)
     n = float(stats.n_triangles)
     r = k.ratio
 
     def plan(L):
-        cells = l_level_cells(n, r, L, kk, kind=kind)
+        cells = paper_level_cells(n, r, L, kk, kind=kind)
         m = [float(c) ** (1.0 / 3.0) for c in cells]
         n_l = n
         steps = subgrids = 0.0

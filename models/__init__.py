@@ -14,6 +14,7 @@ from .closed_forms import (cells_to_resolution, empirical_cells, l_level_cells, 
 from .effects import EFFECT_TOLERANCE, select_effects, termination_fraction
 from .general import Terms, optimal_cell_size, optimal_uniform, predict_uniform, steps_per_ray
 from .nested import choose_levels, nested_counts, optimal_nested
+from .portable import general_resolution, paper_resolutions, resolution_for_cells
 from .stats import SceneStats, grid_box, scene_class, scene_stats, triangle_geometry
 from .uncertainty import posterior_ns, posterior_optimum
 
@@ -23,6 +24,8 @@ __all__ = [
     # the talk's closed forms
     "points_cells", "lines_cells", "two_level_points", "two_level_lines", "l_level_cells", "empirical_cells",
     "cells_to_resolution",
+    # portable resolutions (what the exported C header computes, bit for bit)
+    "paper_resolutions", "general_resolution", "resolution_for_cells",
     # today's heuristics
     "all_baselines", "pbrt_grid", "manta_recursive_grid", "cleary_grid", "kalojanov_two_level",
     # the general model

@@ -20,8 +20,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import portable as _portable
+from .portable import resolution_for_cells
+
 #: Talk's 2-level example constant: a cube's surface passes through 6 m^2 cells.
-K_CUBE = 6.0
+K_CUBE = _portable.K_CUBE  # 6.0
 #: Proportionality constants of the talk's empirical single-level laws (cells per
 #: N^(7/9) and per N^(4/3)).  The talk gives only the exponents; 1.0 is a neutral default
 #: to be replaced by a fitted value.
@@ -32,10 +35,10 @@ EMPIRICAL_SKINNY_EXPONENT = 4.0 / 3.0
 
 #: Clamp on cells per axis (the C grid stores per-axis counts as 32-bit integers; 4096
 #: keeps one axis of cell offsets well inside memory for any flat box).
-MAX_CELLS_PER_AXIS = 4096
+MAX_CELLS_PER_AXIS = _portable.MAX_CELLS_PER_AXIS  # 4096
 #: Clamp on total cells: 2^26 cells = 256 MiB of 32-bit cell offsets, and a flat cell
 #: index x + nx*(y + ny*z) that always fits a signed 32-bit integer.
-MAX_TOTAL_CELLS = 2 ** 26
+MAX_TOTAL_CELLS = _portable.MAX_TOTAL_CELLS  # 2 ** 26
 
 
 def _pos(name, x):
@@ -152,9 +155,11 @@ def cells_to_resolution(total_cells, extent, *, max_per_axis=MAX_CELLS_PER_AXIS,
     """Per-axis resolution with near-cubic cells for a requested total cell count.
 
     ``n_i = d_i * cbrt(M / (d_x d_y d_z))`` (the talk's rule), computed in log space so
-    no product overflows, rounded to nearest, each clamped to ``[1, max_per_axis]``,
-    then the product clamped to ``max_total`` by shrinking the axes that are > 1
-    together (cells stay as cubic as the clamp allows).
+    no product overflows, rounded to nearest (ties to even), each clamped to
+    ``[1, max_per_axis]``, then the product clamped to ``max_total`` by shrinking the
+    axes that are > 1 together (cells stay as cubic as the clamp allows).  The
+    arithmetic is :func:`models.portable.resolution_for_cells` (portable logarithm and
+    exponential), which the exported C header reproduces bit for bit.
 
     Parameters
     ----------
@@ -173,20 +178,4 @@ def cells_to_resolution(total_cells, extent, *, max_per_axis=MAX_CELLS_PER_AXIS,
         raise ValueError(f"extent must be 3 finite positive lengths, got {extent!r}")
     if int(max_per_axis) < 1 or int(max_total) < 1:
         raise ValueError("max_per_axis and max_total must be >= 1")
-    max_per_axis, max_total = int(max_per_axis), int(max_total)
-    log_m = min(np.log(m), np.log(float(max_total)) + 1.0)  # never needs more than max_total
-    logd = np.log(d)
-    log_n = logd + (log_m - logd.sum()) / 3.0
-    n = np.clip(np.rint(np.exp(np.minimum(log_n, np.log(max_per_axis) + 1.0))), 1, max_per_axis)
-    n = n.astype(np.int64)
-    for _ in range(8):
-        prod = int(n[0]) * int(n[1]) * int(n[2])
-        if prod <= max_total:
-            break
-        big = n > 1
-        shrink = (max_total / prod) ** (1.0 / int(big.sum()))
-        n = np.where(big, np.maximum(np.floor(n * shrink), 1), n).astype(np.int64)
-    while int(n[0]) * int(n[1]) * int(n[2]) > max_total:  # at most a few steps
-        i = int(np.argmax(n))
-        n[i] -= 1
-    return int(n[0]), int(n[1]), int(n[2])
+    return resolution_for_cells(m, (float(d[0]), float(d[1]), float(d[2])), int(max_per_axis), int(max_total))
