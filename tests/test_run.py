@@ -119,3 +119,44 @@ def test_run_json_and_show(small_suite, tmp_path, capsys):
     assert shown["constants"] == calfile.load(out)["constants"]
     for p in shown["plots"]:
         assert (tmp_path / p).exists() or __import__("pathlib").Path(p).exists()
+
+
+def _planted_isolated_records(sub_diffs, t_setup=50.0, t_step=10.0, seed=0):
+    """Isolating-suite records with planted times: empty grids exact, subgrid pairs given."""
+    rng = np.random.default_rng(seed)
+    recs = []
+    for side in (1, 2, 4, 8, 16):
+        rays, steps = 2048, int(2048 * 1.5 * side)
+        t = rays * t_setup + steps * t_step
+        recs.append(dict(kind="isolated", suite="empty", rays=rays, steps=steps, tests=0, subgrids=0,
+                         values_ns=list(t * (1 + 0.002 * rng.standard_normal(5)))))
+    for side, diff in zip((2, 4, 8, 16), sub_diffs, strict=True):
+        subs = 2000 * side
+        none = 1e6
+        recs.append(dict(kind="isolated", suite="subgrid", resolution=f"{side}x{side}x{side}", rays=2048,
+                         steps=subs, tests=0, subgrids=0, values_ns=[none] * 5))
+        recs.append(dict(kind="isolated", suite="subgrid", resolution=f"{side}x{side}x{side} / 1x1x1",
+                         rays=2048, steps=2 * subs, tests=0, subgrids=subs,
+                         values_ns=[none + subs * (diff + t_step)] * 5))
+    return recs
+
+
+def test_isolated_subgrid_cost_is_the_median_of_the_paired_differences():
+    iso, warning = run._isolated_fit(_planted_isolated_records([30.0, 40.0, 50.0, 60.0]), seed=0)
+    assert iso["t_step_ns"]["median"] == pytest.approx(10.0, rel=0.02)
+    assert iso["t_sub_ns"]["median"] == pytest.approx(45.0, rel=0.05)
+    assert "subgrid" not in (warning or "")
+
+
+def test_one_noisy_subgrid_pair_does_not_lose_the_estimate():
+    # a busy host: one pair shows no cost beyond a cell step
+    iso, warning = run._isolated_fit(_planted_isolated_records([-5.0, 40.0, 50.0, 60.0]), seed=0)
+    assert iso["t_sub_ns"]["median"] == pytest.approx(45.0, rel=0.05)
+    assert iso["t_sub_ns"]["ci95"][0] == 0.0
+    assert "1 of 4 paired differences" in warning
+
+
+def test_subgrids_that_cost_nothing_give_no_estimate_and_say_so():
+    iso, warning = run._isolated_fit(_planted_isolated_records([-5.0, -4.0, 1.0, -2.0]), seed=0)
+    assert "t_sub_ns" not in iso
+    assert "costs no more than a cell step" in warning
