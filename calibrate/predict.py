@@ -739,6 +739,45 @@ def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analyt
     return _plain(out)
 
 
+def recommended_grid(scene, *, constants=None, samples=None, ratio=None, levels="auto", mailbox=False):
+    """The analytic fidelity's recommended grid, built in the kernel.
+
+    Same plan as :func:`predict` with ``fidelity="analytic"`` (and the same arguments):
+    ``levels="1"`` gives the uniform recommendation, ``"auto"`` the nested one (which may
+    be a single level when no deeper grid is predicted to pay).  A nested plan is built
+    with its top resolution and its per-cell depth-1 subgrid resolutions; deeper levels
+    follow the kernel's rule.
+
+    Returns ``(grid, plan)``: a :class:`calibrate._grid.Grid` and a dict with ``levels``
+    (the number of levels), ``resolution`` (top [nx, ny, nz]), ``predict_s`` (seconds to
+    plan, scene statistics included unless already cached) and ``build_s`` (seconds to
+    build).
+    """
+    levels = _check_choice("levels", levels, LEVEL_CHOICES)
+    if not isinstance(mailbox, (bool, np.bool_)):
+        raise ValueError(f"mailbox must be True or False, got {mailbox!r}")
+    k = resolve_constants(constants, samples, ratio)
+    if not isinstance(scene, Scene):
+        scene = Scene.load(scene)
+    t0 = time.perf_counter()
+    plan, _ = _analytic_plan(scene, scene_statistics(scene), k, levels, bool(mailbox))
+    n_levels = len(plan["levels"])
+    sub = None
+    if n_levels > 1:
+        counts = plan["counts"]
+        sub = _kernel_subgrid_resolutions(scene, scene.stats, counts, plan["overlap"])
+        top = _res_list(counts.top_resolution)
+    else:
+        top = _res_list(plan["levels"][0]["resolution"])
+    t1 = time.perf_counter()
+    if n_levels > 1:
+        grid = Grid.nested(scene, levels=n_levels, resolution=top, subgrid_resolutions=sub, mailbox=bool(mailbox))
+    else:
+        grid = Grid.uniform(scene, top, mailbox=bool(mailbox))
+    t2 = time.perf_counter()
+    return grid, dict(levels=n_levels, resolution=top, predict_s=t1 - t0, build_s=t2 - t1)
+
+
 def _plain(x):
     """numpy scalars/arrays and tuples -> JSON types; non-finite floats -> None."""
     if isinstance(x, dict):
