@@ -623,7 +623,7 @@ def _print_scale(result: dict) -> None:
                         f"median of {result['repeats']})")
     for col in ("scene", "triangles", "resolution", "predict s", "build s", "references", "Mrefs/s", "memory MiB",
                 "B/triangle", "Mrays/s"):
-        table.add_column(col, justify="right")
+        table.add_column(col, justify="right", no_wrap=True)
     for r in result["rows"]:
         table.add_row(r["scene"], f"{r['triangles']:,}", "x".join(map(str, r["resolution"])), f"{r['predict_s']:.3g}",
                       f"{r['build_s']:.3g}", f"{r['references']:,}",
