@@ -26,7 +26,8 @@ Throughput (:func:`bench_scene`, the default verb)
     batch (it is vectorised numpy).  Repeats are interleaved (round r times every
     contender once, in a rotating order) after one untimed warm-up call each; the
     median and the spread (``(max - min) / median``) of the per-batch rates are
-    reported.
+    reported; the ratio to Embree is the median over rounds of the two rates measured
+    side by side in the same round (a slow spell of a shared host hits both).
 
     First-hit semantics: before timing, every contender's first hits on the rays are
     compared with gridcal's uniform grid (:func:`first_hit_agreement`): a ray agrees
@@ -318,9 +319,11 @@ def bench_scene(scene, *, constants=None, samples=None, ratio=None, batch: int =
     Returns a JSON-ready dict: ``scene``, ``triangles``, ``scene_class``, ``grids`` (per
     gridcal contender: levels, resolution, references, memory_bytes, predict_s,
     build_s), ``ray_sets`` (per set: hit fraction, per-contender rate summaries and
-    agreement with gridcal's uniform grid), ``mrays_per_s`` (per contender over all ray
-    sets: total rays / total median time), ``ratio_vs_embree``, ``skipped`` (contender ->
-    reason), ``agreement_ok``.
+    agreement with gridcal's uniform grid, and ``ratio_vs_embree``: per contender the
+    median over rounds of its rate over Embree's in the same round), ``mrays_per_s`` (per
+    contender over all ray sets: total rays / total median time), ``ratio_vs_embree``
+    (the per-set paired ratios combined with weights of Embree's time per set),
+    ``skipped`` (contender -> reason), ``agreement_ok``.
     """
     from models.stats import scene_class
 
@@ -381,6 +384,12 @@ def bench_scene(scene, *, constants=None, samples=None, ratio=None, batch: int =
             calls["embree"] = tracers["embree"].call(o32, d32)
         times = interleaved(calls, repeats)
         rates = {name: dict(rate_summary(ts, batch), rays=batch) for name, ts in times.items()}
+        paired = {}
+        if "embree" in times:
+            # per round, the contender's rate over Embree's, taken side by side: robust to a slow spell
+            e = np.asarray(times["embree"], dtype=np.float64)
+            paired = {name: float(np.median(e / np.asarray(ts, dtype=np.float64)))
+                      for name, ts in times.items() if name != "embree"}
         if "trimesh" in tracers:
             m = min(batch, TRIMESH_BATCH)
             t, prim = tracers["trimesh"].first_hits(o[:m], d[:m])
@@ -388,8 +397,11 @@ def bench_scene(scene, *, constants=None, samples=None, ratio=None, batch: int =
             # the agreement call above was its warm-up
             ts = interleaved({"trimesh": tracers["trimesh"].call(o[:m], d[:m])}, TRIMESH_REPEATS, warmups=0)["trimesh"]
             rates["trimesh"] = dict(rate_summary(ts, m), rays=m)
+            if "embree" in rates:  # not paired: its own, smaller batch
+                paired["trimesh"] = rates["trimesh"]["mrays_per_s"] / rates["embree"]["mrays_per_s"]
         agreement_ok &= all(a["ok"] for a in agreement.values())
-        sets[rs] = dict(rays=batch, hits=float(np.isfinite(t_ref).mean()), rates=rates, agreement=agreement)
+        sets[rs] = dict(rays=batch, hits=float(np.isfinite(t_ref).mean()), rates=rates, agreement=agreement,
+                        ratio_vs_embree=paired)
     overall = {}
     for name in CONTENDERS:
         per = [s["rates"][name] for s in sets.values() if name in s["rates"]]
@@ -398,7 +410,14 @@ def bench_scene(scene, *, constants=None, samples=None, ratio=None, batch: int =
             overall[name] = sum(p["rays"] for p in per) / sum(p["rays"] / p["mrays_per_s"] for p in per)
     ratio_vs = {}
     if "embree" in overall:
-        ratio_vs = {name: overall[name] / overall["embree"] for name in overall if name != "embree"}
+        # per ray set the paired ratio; over the sets weighted by Embree's time on each, so that
+        # with equal ratios it is the ratio of total rays over total time (like mrays_per_s)
+        for name in overall:
+            if name == "embree":
+                continue
+            w = [(s["rays"] / s["rates"]["embree"]["mrays_per_s"], s["ratio_vs_embree"][name])
+                 for s in sets.values() if name in s["ratio_vs_embree"]]
+            ratio_vs[name] = sum(t for t, _ in w) / sum(t / r for t, r in w)
     cls = scene_class(scene.stats)
     return dict(scene=scene.name, triangles=scene.n_triangles, scene_class=cls[0] if isinstance(cls, tuple) else cls,
                 grids=info, ray_sets=sets, mrays_per_s=overall, ratio_vs_embree=ratio_vs, skipped=skipped,
@@ -534,7 +553,8 @@ def cmd_bench(args) -> int:
     from .protocol import pin_to_one_core
 
     src, source_note = _source(args)
-    show = (lambda text: print(text, file=sys.stderr, flush=True)) if not (args.quiet or args.json) else None
+    show = ((lambda text: print(text, file=sys.stderr, flush=True))
+            if not args.quiet and sys.stderr.isatty() else None)
     for name in ("batch", "repeats"):
         v = getattr(args, name)
         if v is not None and v < 1:

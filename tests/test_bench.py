@@ -75,20 +75,24 @@ def test_exponent_fit_rejects_bad_input(x, y):
 
 
 def test_json_fields_for_a_small_scene(capsys):
-    code = main(["bench", "cylinder196", "--json", "--batch", "256", "--repeats", "2", "--rays", "isotropic,camera",
+    code = main(["bench", "cylinder196", "--json", "--batch", "256", "--repeats", "3", "--rays", "camera",
                  "--no-trimesh", "--ratio", "1"])
     assert code == 0
     out = json.loads(capsys.readouterr().out)
     (s,) = out["scenes"]
     assert s["scene"] == "cylinder196" and s["triangles"] == 196
-    assert set(s["ray_sets"]) == {"isotropic", "camera"}
+    assert set(s["ray_sets"]) == {"camera"}
+    rates = s["ray_sets"]["camera"]["rates"]
     for name in ("gridcal-uniform", "gridcal-nested"):
-        assert s["mrays_per_s"][name] > 0
+        assert s["mrays_per_s"][name] == pytest.approx(rates[name]["mrays_per_s"])  # one ray set
+        assert rates[name]["min"] <= rates[name]["mrays_per_s"] <= rates[name]["max"]
         assert s["grids"][name]["references"] > 0
     if embree_unavailable() is None:
-        assert s["mrays_per_s"]["embree"] > 0
+        e = rates["embree"]
         for name in ("gridcal-uniform", "gridcal-nested"):
-            assert s["ratio_vs_embree"][name] == pytest.approx(s["mrays_per_s"][name] / s["mrays_per_s"]["embree"])
+            r, g = s["ratio_vs_embree"][name], rates[name]
+            assert r == pytest.approx(s["ray_sets"]["camera"]["ratio_vs_embree"][name])
+            assert g["min"] / e["max"] * (1 - 1e-12) <= r <= g["max"] / e["min"] * (1 + 1e-12)
     else:
         assert "embree" in s["skipped"] and s["ratio_vs_embree"] == {}
 
