@@ -82,6 +82,8 @@ SCALE_SIZES = (1_000, 10_000, 100_000, 1_000_000, 5_000_000)
 DEFAULT_MAX_TRIANGLES = 5_000_000
 SCALE_BATCH = 16_384
 SCALE_REPEATS = 3
+#: --scale builds the recommended nested grid up to this many triangles.
+SCALE_NESTED_MAX_TRIANGLES = 1_100_000
 SEED = 0
 CONTENDERS = ("gridcal-uniform", "gridcal-nested", "embree", "trimesh")
 
@@ -429,35 +431,63 @@ def bench_scene(scene, *, constants=None, samples=None, ratio=None, batch: int =
 # scale
 # ---------------------------------------------------------------------------------------
 
-def _scale_row(scene: Scene, *, src, batch, repeats, load_s) -> dict:
+def _scale_row(scene: Scene, *, src, batch, repeats, load_s, nested: bool, embree: bool) -> dict:
     from .predict import recommended_grid
 
     grid, plan = recommended_grid(scene, levels="1", **src)
     gi = grid.info
     o, d = make_rays(scene, "isotropic", batch, seed=SEED)
-    ts = interleaved({"g": lambda run=grid.timed_batch(o, d): run(1)}, repeats)["g"]
-    rate = rate_summary(ts, batch)
+    calls = {"gridcal-uniform": lambda run=grid.timed_batch(o, d): run(1)}
     refs = int(gi["n_refs"])
     row = dict(scene=scene.name, triangles=scene.n_triangles, resolution=plan["resolution"],
                load_s=load_s, predict_s=plan["predict_s"], build_s=plan["build_s"],
                predicted_and_built_s=plan["predict_s"] + plan["build_s"], references=refs,
                refs_per_s=refs / plan["build_s"] if plan["build_s"] > 0 else None,
-               memory_bytes=int(gi["memory_bytes"]), bytes_per_triangle=gi["memory_bytes"] / scene.n_triangles,
-               mrays_per_s=rate["mrays_per_s"], spread=rate["spread"])
-    del grid
+               memory_bytes=int(gi["memory_bytes"]), bytes_per_triangle=gi["memory_bytes"] / scene.n_triangles)
+    keep = [grid]
+    if nested:
+        ng, nplan = recommended_grid(scene, levels="auto", **src)
+        ni = ng.info
+        row["nested"] = dict(levels=nplan["levels"], resolution=nplan["resolution"], predict_s=nplan["predict_s"],
+                             build_s=nplan["build_s"], references=int(ni["n_refs"]),
+                             memory_bytes=int(ni["memory_bytes"]))
+        calls["gridcal-nested"] = lambda run=ng.timed_batch(o, d): run(1)
+        keep.append(ng)
+    if embree:
+        tracer = EmbreeTracer(scene)
+        row["embree"] = dict(build_s=tracer.build_s)
+        calls["embree"] = tracer.call(o.astype(np.float32), d.astype(np.float32))
+        keep.append(tracer)
+    times = interleaved(calls, repeats)
+    rates = {name: rate_summary(ts, batch) for name, ts in times.items()}
+    row["mrays_per_s"] = rates["gridcal-uniform"]["mrays_per_s"]
+    row["spread"] = rates["gridcal-uniform"]["spread"]
+    if nested:
+        row["nested"]["mrays_per_s"] = rates["gridcal-nested"]["mrays_per_s"]
+    if embree:
+        row["embree"]["mrays_per_s"] = rates["embree"]["mrays_per_s"]
+        e = np.asarray(times["embree"], dtype=np.float64)
+        row["ratio_vs_embree"] = {name: float(np.median(e / np.asarray(ts, dtype=np.float64)))
+                                  for name, ts in times.items() if name != "embree"}
+    del keep, calls
     return row
 
 
 def scale_bench(*, max_triangles: int = DEFAULT_MAX_TRIANGLES, sizes=SCALE_SIZES, meshes=(), constants=None,
                 samples=None, ratio=None, batch: int = SCALE_BATCH, repeats: int = SCALE_REPEATS,
+                nested_max_triangles: int = SCALE_NESTED_MAX_TRIANGLES, embree: bool = True,
                 progress=None) -> dict:
     """Build time, references, memory and throughput of the recommended uniform grid as N grows.
 
     The built-in bumpy sphere at each target of ``sizes`` up to ``max_triangles``, then
-    each mesh of ``meshes`` (files or built-in names; not in the fits).  Returns a dict
-    with ``rows`` and ``exponents`` (per quantity: :func:`fit_exponent` over the built-in
-    series against the triangle count; ``ns_per_ray`` is 1000 / Mrays/s).
+    each mesh of ``meshes`` (files or built-in names; not in the fits).  Up to
+    ``nested_max_triangles`` the recommended nested grid is built and timed too (its plan
+    and build take about 25 s at 10^6 triangles); Embree beside them when embreex imports
+    and ``embree``.  Returns a dict with ``rows``, ``exponents`` (per quantity:
+    :func:`fit_exponent` over the built-in series against the triangle count;
+    ``ns_per_ray`` is 1000 / Mrays/s), ``largest`` and ``skipped``.
     """
+    from .predict import recommended_grid
     from .scenes import sphere_mesh
 
     max_triangles = _check_int(max_triangles, "max triangles", 20)
@@ -465,6 +495,15 @@ def scale_bench(*, max_triangles: int = DEFAULT_MAX_TRIANGLES, sizes=SCALE_SIZES
     repeats = _check_int(repeats, "repeats", 1)
     note = progress or (lambda text: None)
     src = dict(constants=constants, samples=samples, ratio=ratio)
+    skipped = {}
+    if max_triangles > nested_max_triangles:
+        skipped["gridcal-nested"] = f"above {nested_max_triangles:,} triangles (plan and build time, memory)"
+    if embree and embree_unavailable():
+        skipped["embree"] = embree_unavailable()
+        embree = False
+    opts = dict(src=src, batch=batch, repeats=repeats, embree=embree)
+    # one untimed plan and build first: the first call's imports are not the smallest scene's cost
+    recommended_grid(Scene(*sphere_mesh(20)), levels="1", **src)
     targets = [n for n in sizes if n <= max_triangles]
     if not targets or targets[-1] < max_triangles:
         targets.append(max_triangles)
@@ -475,14 +514,16 @@ def scale_bench(*, max_triangles: int = DEFAULT_MAX_TRIANGLES, sizes=SCALE_SIZES
         v, f = sphere_mesh(n)
         scene = Scene(v, f, name=f"sphere-{f.shape[0]}")
         load_s = time.perf_counter() - t0
-        rows.append(dict(_scale_row(scene, src=src, batch=batch, repeats=repeats, load_s=load_s), series="sphere"))
+        rows.append(dict(_scale_row(scene, load_s=load_s, nested=scene.n_triangles <= nested_max_triangles, **opts),
+                         series="sphere"))
         del scene, v, f
     for spec in meshes:
         note(f"{spec}")
         t0 = time.perf_counter()
         scene = Scene.load(spec)
         load_s = time.perf_counter() - t0
-        rows.append(dict(_scale_row(scene, src=src, batch=batch, repeats=repeats, load_s=load_s), series="mesh"))
+        rows.append(dict(_scale_row(scene, load_s=load_s, nested=scene.n_triangles <= nested_max_triangles, **opts),
+                         series="mesh"))
     series = [r for r in rows if r["series"] == "sphere"]
     exponents = {}
     if len({r["triangles"] for r in series}) >= 2:
@@ -494,7 +535,11 @@ def scale_bench(*, max_triangles: int = DEFAULT_MAX_TRIANGLES, sizes=SCALE_SIZES
                           ("ns_per_ray", [1e3 / r["mrays_per_s"] for r in series])):
             exponents[key] = fit_exponent(n, vals)
     largest = max(series, key=lambda r: r["triangles"]) if series else None
-    return dict(rows=rows, exponents=exponents, batch=batch, repeats=repeats,
+    if embree and len({r["triangles"] for r in series}) >= 2:
+        n = [r["triangles"] for r in series]
+        exponents["embree_ns_per_ray"] = fit_exponent(n, [1e3 / r["embree"]["mrays_per_s"] for r in series])
+        exponents["embree_build_s"] = fit_exponent(n, [r["embree"]["build_s"] for r in series])
+    return dict(rows=rows, exponents=exponents, batch=batch, repeats=repeats, skipped=skipped,
                 largest=None if largest is None else dict(
                     triangles=largest["triangles"], predicted_and_built_s=largest["predicted_and_built_s"],
                     refs_per_s=largest["refs_per_s"], bytes_per_triangle=largest["bytes_per_triangle"]))
@@ -634,27 +679,34 @@ def _print_bench(result: dict) -> None:
 
 
 def _print_scale(result: dict) -> None:
-    from rich.table import Table
-
-    from .cli import _console
-
-    console = _console()
-    table = Table(title=f"recommended uniform grid as N grows (isotropic rays, batches of {result['batch']:,}, "
-                        f"median of {result['repeats']})")
-    for col in ("scene", "triangles", "resolution", "predict s", "build s", "references", "Mrefs/s", "memory MiB",
-                "B/triangle", "Mrays/s"):
-        table.add_column(col, justify="right", no_wrap=True)
+    out = sys.stdout
+    cols = ("scene", "triangles", "predict s", "build s", "refs", "Mrefs/s", "MiB", "B/tri", "Mrays/s",
+            "nested", "L", "Embree", "E build s")
+    rows = []
     for r in result["rows"]:
-        table.add_row(r["scene"], f"{r['triangles']:,}", "x".join(map(str, r["resolution"])), f"{r['predict_s']:.3g}",
-                      f"{r['build_s']:.3g}", f"{r['references']:,}",
-                      "-" if r["refs_per_s"] is None else f"{r['refs_per_s'] / 1e6:.3g}",
-                      f"{r['memory_bytes'] / 2**20:.1f}", f"{r['bytes_per_triangle']:.0f}", f"{r['mrays_per_s']:.3g}")
-    console.print(table)
+        nested, embree = r.get("nested"), r.get("embree")
+        rows.append((r["scene"], f"{r['triangles']:,}", f"{r['predict_s']:.3g}", f"{r['build_s']:.3g}",
+                     f"{r['references']:,}", "-" if r["refs_per_s"] is None else f"{r['refs_per_s'] / 1e6:.3g}",
+                     f"{r['memory_bytes'] / 2**20:.1f}", f"{r['bytes_per_triangle']:.0f}", f"{r['mrays_per_s']:.3g}",
+                     "-" if nested is None else f"{nested['mrays_per_s']:.3g}",
+                     "-" if nested is None else str(nested["levels"]),
+                     "-" if embree is None else f"{embree['mrays_per_s']:.3g}",
+                     "-" if embree is None else f"{embree['build_s']:.3g}"))
+    widths = [max(len(c), *(len(row[i]) for row in rows)) for i, c in enumerate(cols)]
+    out.write(f"recommended uniform grid as N grows: isotropic rays, batches of {result['batch']:,}, median of "
+              f"{result['repeats']}; Mrays/s of the nested grid (L levels) and Embree beside it\n")
+    fmt = lambda cells: "  ".join(c.ljust(w) if i == 0 else c.rjust(w)  # noqa: E731
+                                  for i, (c, w) in enumerate(zip(cells, widths)))
+    out.write(fmt(cols) + "\n")
+    for row in rows:
+        out.write(fmt(row) + "\n")
     for key, e in result["exponents"].items():
-        console.print(f"{key} ~ N^{e['exponent']:.3f} (R^2 {e['r2']:.3f})")
+        out.write(f"{key} ~ N^{e['exponent']:.3f} (R^2 {e['r2']:.3f})\n")
     lg = result.get("largest")
     if lg:
-        console.print(f"{lg['triangles']:,} triangles predicted and built in {lg['predicted_and_built_s']:.2f} s "
-                      f"({lg['refs_per_s'] / 1e6:.3g} M references/s, {lg['bytes_per_triangle']:.0f} bytes per "
-                      "triangle)")
-    console.print(f"{result['constants']}; {result['pinning']}")
+        out.write(f"{lg['triangles']:,} triangles predicted and built in {lg['predicted_and_built_s']:.2f} s "
+                  f"({lg['refs_per_s'] / 1e6:.3g} M references/s, {lg['bytes_per_triangle']:.0f} bytes per "
+                  "triangle)\n")
+    for n, why in result.get("skipped", {}).items():
+        out.write(f"skipped {n}: {why}\n")
+    out.write(f"{result['constants']}; {result['pinning']}\n")
