@@ -153,3 +153,15 @@ def test_bad_input_is_one_line_and_exit_2(argv, words, capsys):
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("calibrate: error:") and words in err and "\n" not in err
+
+
+@pytest.mark.parametrize("name", ["room"])  # its auto plan has 2 levels
+def test_recommended_grid_is_what_predict_recommends(name):
+    from calibrate.predict import predict, recommended_grid
+
+    scene = Scene.builtin(name)
+    for levels in ("1", "auto"):
+        p = predict(scene, ratio=1.0, levels=levels)
+        grid, plan = recommended_grid(scene, ratio=1.0, levels=levels)
+        assert plan["levels"] == len(p["levels"]) == grid.info["levels"]
+        assert plan["resolution"] == p["levels"][0]["resolution"] == list(grid.resolution)
