@@ -24,7 +24,9 @@ equally likely"), and judged:
     faster ... for 196 tri cylinder".  The 2-level grid is the talk's closed form
     (``m1^3 = (2 k^2 N r)^0.6`` with subgrids of ``2 r n`` cells for points;
     ``m1^3 = k N r`` with ``(r n)^1.5`` for lines) over a few top scales; the 1-level
-    grid is the measured best of the 1-level sweep.
+    grid is the measured best of the 1-level sweep.  The 2-level grid ``calibrate predict``
+    recommends (subgrids sized per cell by the general model) is measured beside them and
+    the faster 2-level grid counts.
 ``empirical-exponent``
     "O(N^(7/9)) cells ... for compact triangles, O(N^(4/3)) cells for long skinny
     triangles": the exponent of a least-squares line through log(measured-best cells)
@@ -199,9 +201,9 @@ def fit_exponent(n, cells) -> dict:
 
 # --- what is measured ---------------------------------------------------------------------
 
-#: Per-axis scales of the class law's resolution in a 1-level sweep: 2^(j/2), j = -3..2
-#: (cells from 1/23 to 8 times the law's).
-SWEEP_AXIS_SCALES = tuple(2.0 ** (j / 2.0) for j in range(-3, 3))
+#: Per-axis scales of the class law's resolution in a 1-level sweep: 2^(j/2), j = -3..3
+#: (cells from 1/23 to 23 times the law's).
+SWEEP_AXIS_SCALES = tuple(2.0 ** (j / 2.0) for j in range(-3, 4))
 #: Per-axis scales of the talk's 2-level top resolution.
 TWO_LEVEL_TOP_SCALES = tuple(2.0 ** (j / 2.0) for j in (-1, 0, 1))
 TWO_LEVEL_TOP_SCALES_QUICK = (2.0 ** -0.5, 1.0)
@@ -254,6 +256,15 @@ def _two_level_spec(scene: Scene, law: str, r: float, top_scale: float):
                     exponents=(1.0, leaf_exponent), label=f"2-level top x{top_scale:.3g}")
 
 
+def _predicted_two_level_spec(scene: Scene, r: float):
+    """The 2-level grid ``calibrate predict --levels 2 --ratio r`` recommends (model-sized subgrids)."""
+    from .predict import predict
+    from .sweep import GridSpec
+
+    top = tuple(predict(scene, ratio=r, levels="2")["levels"][0]["resolution"])
+    return GridSpec("nested", (top,), depth=2, subgrids="model", ratio=r, label="2-level as predicted")
+
+
 def measure_scene(scene: Scene, law: str, r: float, *, quick: bool, two_level: bool = False,
                   linear: bool = False, progress=None, status=None) -> dict:
     """Sweep one scene: 1-level grids around its class law (and O(N) for ``linear``), the talk's
@@ -285,6 +296,7 @@ def measure_scene(scene: Scene, law: str, r: float, *, quick: bool, two_level: b
     if two_level:
         nested = [_two_level_spec(scene, law, r, t) for t in (TWO_LEVEL_TOP_SCALES_QUICK if quick
                                                                 else TWO_LEVEL_TOP_SCALES)]
+        nested.append(_predicted_two_level_spec(scene, r))
     o, d = isotropic(scene.box_lo, scene.box_hi, RAYS_QUICK if quick else RAYS, SEED)
     if status is not None:
         status(f"{scene.name}: {len(uniform) + len(nested)} grids")
@@ -454,7 +466,8 @@ def print_report(report: dict) -> None:
         table.add_column(col, justify=just)
     for row in report["rows"]:
         mark = {True: "yes", False: "[bold]no[/bold]", None: "-"}[row["agree"]]
-        table.add_row(row["statement"], row["scene"], row["talk"], row["ours_text"], mark)
+        here = row["ours_text"] + (f" ± {row['stderr']:.3f}" if row.get("stderr") is not None else "")
+        table.add_row(row["statement"], row["scene"], row["talk"], here, mark)
     console.print(table)
     for row in report["rows"]:
         if row["note"]:

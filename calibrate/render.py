@@ -47,6 +47,9 @@ HEATMAP_CMAP = "inferno"
 HEATMAP_DPI = 128
 #: Width (pixels) of the colour-bar strip right of a heatmap; the PNG is (W + this) x H.
 COLORBAR_STRIP_PIXELS = 96
+#: The colour scale ends at this percentile of the pixels' counts (the bar's arrow marks
+#: larger ones; the title gives the true maximum).
+HEATMAP_SCALE_PERCENTILE = 99.5
 HEATMAP_LABELS = {"steps": "cells stepped per ray", "tests": "triangle tests per ray"}
 
 
@@ -187,18 +190,21 @@ def heatmap_png(values: np.ndarray, label: str, title: str | None = None) -> byt
     fig = Figure(figsize=(total_w / HEATMAP_DPI, h / HEATMAP_DPI), dpi=HEATMAP_DPI)
     fig.patch.set_facecolor("white")
     ax = fig.add_axes((0.0, 0.0, w / total_w, 1.0))
-    vmax = max(1.0, float(values.max()))
+    # a few extreme rays (e.g. through a cap's fan vertex) would darken everything else:
+    # the scale ends at a high percentile and the bar's arrow marks the clipped values
+    vmax = max(1.0, float(np.percentile(values, HEATMAP_SCALE_PERCENTILE)))
+    clipped = float(values.max()) > vmax
     im = ax.imshow(values, cmap=HEATMAP_CMAP, vmin=0.0, vmax=vmax, interpolation="nearest", aspect="auto")
     ax.set_axis_off()
     # the bar: a narrow strip inside the right-hand margin, its labels beside it
     font = max(5.0, min(9.0, h / 40.0))
     bar_left = (w + 0.12 * COLORBAR_STRIP_PIXELS) / total_w
     cax = fig.add_axes((bar_left, 0.08, 0.14 * COLORBAR_STRIP_PIXELS / total_w, 0.84))
-    bar = fig.colorbar(im, cax=cax)
+    bar = fig.colorbar(im, cax=cax, extend="max" if clipped else "neither")
     bar.ax.tick_params(labelsize=font, length=2, pad=1)
     bar.set_label(label, fontsize=font, labelpad=2)
     if title:
-        ax.text(0.01, 0.99, title, transform=ax.transAxes, ha="left", va="top", color="white", fontsize=font)
+        ax.text(0.01, 0.01, title, transform=ax.transAxes, ha="left", va="bottom", color="white", fontsize=font)
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=HEATMAP_DPI)
     return buf.getvalue()
