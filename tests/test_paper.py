@@ -115,7 +115,7 @@ def test_measure_scene_small_cylinder():
     assert any("law" in p["labels"] for p in m["uniform"]) and any("O(N)" in p["labels"] for p in m["uniform"])
     assert min(cells) <= m["best_cells"] * (1 + 1e-9) and m["best_cells"] <= max(cells) * (1 + 1e-9)
     assert m["best_measured_ns"] == min(p["median_ns"] for p in m["uniform"])
-    assert len(m["two_level"]) == 2 and m["two_level_best_ns"] > 0
+    assert len(m["two_level"]) == 3 and m["two_level_best_ns"] > 0
     # the counts come from the instrumented twin: at least one cell per ray that meets the box
     assert all(p["steps"] > 0 for p in m["uniform"])
 
