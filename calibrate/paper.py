@@ -50,7 +50,6 @@ from models.closed_forms import cells_to_resolution, lines_cells, points_cells, 
 from models.portable import paper_k
 
 from ._grid import Scene
-from ._io import UserError
 
 # --- the talk's claims ------------------------------------------------------------------
 

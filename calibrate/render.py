@@ -33,7 +33,7 @@ DEFAULT_SCENE = "sphere"
 DEFAULT_WIDTH = 480
 DEFAULT_HEIGHT = 360
 #: Largest image side (pixels): keeps a render's rays and its PNG within reason.
-MAX_SIDE_PIXELS = 8192
+MAX_SIDE_PIXELS = 4096
 
 # --- the picture ---------------------------------------------------------------------
 #: Grey of a hit: SHADE_FLOOR + (1 - SHADE_FLOOR) * |n . d| (a grazing hit stays visible).
@@ -82,14 +82,17 @@ def recommended_grid(scene: Scene, *, constants=None, samples=None, ratio=None, 
     return grid, plan["levels"]
 
 
-def camera_rays(scene: Scene, width: int, height: int):
+def camera_rays(scene: Scene, width: int, height: int, view=None):
     """The render's primary rays: one through each pixel centre, row-major from the top left.
 
+    view : (3,) direction the camera looks along (default
+    :data:`calibrate.rays.DEFAULT_VIEW_DIRECTION`), towards the box centre.
     Returns origins, directions, each (width * height, 3) float64 (unit directions).
     """
-    from .rays import camera_grid
+    from .rays import DEFAULT_VIEW_DIRECTION, camera_grid
 
-    return camera_grid(scene.box_lo, scene.box_hi, _check_size(width, "width"), _check_size(height, "height"))
+    return camera_grid(scene.box_lo, scene.box_hi, _check_size(width, "width"), _check_size(height, "height"),
+                       view_direction=DEFAULT_VIEW_DIRECTION if view is None else view)
 
 
 def face_normals(scene: Scene) -> np.ndarray:
@@ -116,13 +119,13 @@ def shade(scene: Scene, prim: np.ndarray, directions: np.ndarray) -> np.ndarray:
 
 
 def render(scene, *, width=DEFAULT_WIDTH, height=DEFAULT_HEIGHT, grid: Grid | None = None, resolution=None,
-           levels="1", constants=None, samples=None, ratio=None) -> dict:
+           levels="auto", constants=None, samples=None, ratio=None, view=None) -> dict:
     """Trace the default camera's primary rays through a grid; no file is written.
 
     Parameters
     ----------
     scene : :class:`Scene`, a built-in scene's name or a mesh file's path.
-    width, height : image size in pixels.
+    width, height : image size in pixels; view : (3,) viewing direction (see :func:`camera_rays`).
     grid : a grid over ``scene`` to trace; else ``resolution`` (nx, ny, nz) builds a
         uniform one; else the recommendation of ``calibrate predict`` for ``levels``
         from ``constants``/``samples`` or ``ratio`` (see :func:`calibrate.predict.resolve_constants`).
@@ -151,7 +154,7 @@ def render(scene, *, width=DEFAULT_WIDTH, height=DEFAULT_HEIGHT, grid: Grid | No
         levels_info = [dict(level=1, resolution=list(grid.resolution))]
         if grid.info["levels"] > 1:
             levels_info[0]["note"] = f"top of a {grid.info['levels']}-level grid"
-    o, d = camera_rays(scene, width, height)
+    o, d = camera_rays(scene, width, height, view)
     t, prim, steps, tests, subgrids = grid.count(o, d, hits=True)
     shape = (height, width)
     return dict(scene=scene, grid=grid, levels=levels_info, rgb=shade(scene, prim, d).reshape(height, width, 3),
@@ -271,6 +274,8 @@ def add_parser(sub):
     sp.add_argument("--width", type=int, default=DEFAULT_WIDTH, metavar="W", help=f"pixels (default {DEFAULT_WIDTH})")
     sp.add_argument("--height", type=int, default=DEFAULT_HEIGHT, metavar="H",
                     help=f"pixels (default {DEFAULT_HEIGHT})")
+    sp.add_argument("--view", nargs=3, type=float, metavar=("DX", "DY", "DZ"),
+                    help="direction the camera looks along, towards the box centre (up is +z)")
     src = sp.add_mutually_exclusive_group()
     src.add_argument("--calibration", metavar="FILE", help="calibration file (default ./calibration.json)")
     src.add_argument("--ratio", type=positive_number("the ratio T_int/T_step"), metavar="R",
@@ -293,7 +298,8 @@ def cmd_render(args) -> int:
     src = {} if args.resolution is not None else _constants_from_args(args)
     if not args.quiet and not args.json and sys.stderr.isatty():
         print(f"rendering {scene.name} ({scene.n_triangles:,} triangles) at {width}x{height} ...", file=sys.stderr)
-    result = render(scene, width=width, height=height, resolution=args.resolution, levels=args.levels, **src)
+    result = render(scene, width=width, height=height, resolution=args.resolution, levels=args.levels,
+                    view=args.view, **src)
     write_image(result, out, args.heatmap)
     info = summary(result, out)
     if args.json:
