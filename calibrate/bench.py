@@ -16,9 +16,11 @@ Throughput (:func:`bench_scene`, the default verb)
     float64.
 
     How each contender is fed and timed: one call per batch of ``batch`` rays (16,384 by
-    default), the same batch for all, wall time around the Python call
-    (``time.perf_counter_ns``), so every contender pays its own per-call overhead once
-    per batch.  gridcal: :meth:`calibrate._grid.Grid.timed_batch` (one pass of the C
+    default), the same batch for all, timed around the Python call by the calling
+    thread's CPU time (``time.thread_time_ns``; every contender traces in the calling
+    thread, and the time it waits for a core on a busy host is left out) or, with
+    ``clock="wall"``, by ``time.perf_counter_ns``; every contender pays its own
+    per-call overhead once per batch.  gridcal: :meth:`calibrate._grid.Grid.timed_batch` (one pass of the C
     kernel over the batch).  Embree: ``EmbreeScene.run(origins, directions,
     query="INTERSECT")`` of embreex, which loops over the batch in compiled code calling
     Embree's single-ray ``rtcIntersect1`` once per ray (no packets or streams).
@@ -86,6 +88,8 @@ SCALE_REPEATS = 3
 SCALE_NESTED_MAX_TRIANGLES = 1_100_000
 SEED = 0
 CONTENDERS = ("gridcal-uniform", "gridcal-nested", "embree", "trimesh")
+#: Clocks of the timed calls: the calling thread's CPU time (default) or wall time.
+CLOCKS = ("thread", "wall")
 
 
 # ---------------------------------------------------------------------------------------
@@ -252,25 +256,30 @@ def first_hit_agreement(t, prim, t_ref, prim_ref, scene: Scene | None = None, or
 # timing
 # ---------------------------------------------------------------------------------------
 
-def interleaved(calls: dict, repeats: int, warmups: int = 1) -> dict:
-    """Per name, ``repeats`` wall times (ns) of ``calls[name]()``, taken in interleaved rounds.
+def interleaved(calls: dict, repeats: int, warmups: int = 1, clock: str = "thread") -> dict:
+    """Per name, ``repeats`` times (ns) of ``calls[name]()``, taken in interleaved rounds.
 
     Round r calls every contender once, starting at a rotating position, so a slow
     spell of the host touches all of them alike.  ``warmups`` untimed calls each first.
+    clock: ``"thread"`` (the calling thread's CPU time: every contender traces in the
+    calling thread, and time spent waiting for a core on a busy host is left out) or
+    ``"wall"`` (``time.perf_counter_ns``).
     """
+    if clock not in CLOCKS:
+        raise ValueError(f"clock must be one of {', '.join(CLOCKS)}, got {clock!r}")
     names = list(calls)
     for _ in range(warmups):
         for name in names:
             calls[name]()
     out = {name: [] for name in names}
-    clock = time.perf_counter_ns
+    read = time.thread_time_ns if clock == "thread" else time.perf_counter_ns
     for r in range(repeats):
         k = r % len(names) if names else 0
         for name in names[k:] + names[:k]:
             fn = calls[name]
-            a = clock()
+            a = read()
             fn()
-            out[name].append(clock() - a)
+            out[name].append(max(read() - a, 1))
     return out
 
 
@@ -315,7 +324,7 @@ def _check_int(value, name, lo):
 
 def bench_scene(scene, *, constants=None, samples=None, ratio=None, batch: int = DEFAULT_BATCH,
                 repeats: int = DEFAULT_REPEATS, ray_sets=RAY_SETS, trimesh: bool = True, mailbox: bool = False,
-                progress=None) -> dict:
+                clock: str = "thread", progress=None) -> dict:
     """Throughput of gridcal's recommended grids, Embree and trimesh on one scene (module docstring).
 
     Returns a JSON-ready dict: ``scene``, ``triangles``, ``scene_class``, ``grids`` (per
@@ -384,7 +393,7 @@ def bench_scene(scene, *, constants=None, samples=None, ratio=None, batch: int =
             t, prim = tracers["embree"].first_hits(o32, d32)
             agreement["embree"] = first_hit_agreement(t, prim, t_ref, prim_ref, scene, o, d)
             calls["embree"] = tracers["embree"].call(o32, d32)
-        times = interleaved(calls, repeats)
+        times = interleaved(calls, repeats, clock=clock)
         rates = {name: dict(rate_summary(ts, batch), rays=batch) for name, ts in times.items()}
         paired = {}
         if "embree" in times:
@@ -397,7 +406,8 @@ def bench_scene(scene, *, constants=None, samples=None, ratio=None, batch: int =
             t, prim = tracers["trimesh"].first_hits(o[:m], d[:m])
             agreement["trimesh"] = first_hit_agreement(t, prim, t_ref[:m], prim_ref[:m], scene, o[:m], d[:m])
             # the agreement call above was its warm-up
-            ts = interleaved({"trimesh": tracers["trimesh"].call(o[:m], d[:m])}, TRIMESH_REPEATS, warmups=0)["trimesh"]
+            ts = interleaved({"trimesh": tracers["trimesh"].call(o[:m], d[:m])}, TRIMESH_REPEATS, warmups=0,
+                             clock=clock)["trimesh"]
             rates["trimesh"] = dict(rate_summary(ts, m), rays=m)
             if "embree" in rates:  # not paired: its own, smaller batch
                 paired["trimesh"] = rates["trimesh"]["mrays_per_s"] / rates["embree"]["mrays_per_s"]
@@ -423,7 +433,7 @@ def bench_scene(scene, *, constants=None, samples=None, ratio=None, batch: int =
     cls = scene_class(scene.stats)
     return dict(scene=scene.name, triangles=scene.n_triangles, scene_class=cls[0] if isinstance(cls, tuple) else cls,
                 grids=info, ray_sets=sets, mrays_per_s=overall, ratio_vs_embree=ratio_vs, skipped=skipped,
-                agreement_ok=bool(agreement_ok), batch=batch, repeats=repeats, t_rel_tol=T_REL_TOL,
+                agreement_ok=bool(agreement_ok), batch=batch, repeats=repeats, clock=clock, t_rel_tol=T_REL_TOL,
                 min_agreement=MIN_AGREEMENT)
 
 
@@ -431,7 +441,7 @@ def bench_scene(scene, *, constants=None, samples=None, ratio=None, batch: int =
 # scale
 # ---------------------------------------------------------------------------------------
 
-def _scale_row(scene: Scene, *, src, batch, repeats, load_s, nested: bool, embree: bool) -> dict:
+def _scale_row(scene: Scene, *, src, batch, repeats, load_s, nested: bool, embree: bool, clock: str) -> dict:
     from .predict import recommended_grid
 
     grid, plan = recommended_grid(scene, levels="1", **src)
@@ -458,7 +468,7 @@ def _scale_row(scene: Scene, *, src, batch, repeats, load_s, nested: bool, embre
         row["embree"] = dict(build_s=tracer.build_s)
         calls["embree"] = tracer.call(o.astype(np.float32), d.astype(np.float32))
         keep.append(tracer)
-    times = interleaved(calls, repeats)
+    times = interleaved(calls, repeats, clock=clock)
     rates = {name: rate_summary(ts, batch) for name, ts in times.items()}
     row["mrays_per_s"] = rates["gridcal-uniform"]["mrays_per_s"]
     row["spread"] = rates["gridcal-uniform"]["spread"]
@@ -476,7 +486,7 @@ def _scale_row(scene: Scene, *, src, batch, repeats, load_s, nested: bool, embre
 def scale_bench(*, max_triangles: int = DEFAULT_MAX_TRIANGLES, sizes=SCALE_SIZES, meshes=(), constants=None,
                 samples=None, ratio=None, batch: int = SCALE_BATCH, repeats: int = SCALE_REPEATS,
                 nested_max_triangles: int = SCALE_NESTED_MAX_TRIANGLES, embree: bool = True,
-                progress=None) -> dict:
+                clock: str = "thread", progress=None) -> dict:
     """Build time, references, memory and throughput of the recommended uniform grid as N grows.
 
     The built-in bumpy sphere at each target of ``sizes`` up to ``max_triangles``, then
@@ -501,7 +511,7 @@ def scale_bench(*, max_triangles: int = DEFAULT_MAX_TRIANGLES, sizes=SCALE_SIZES
     if embree and embree_unavailable():
         skipped["embree"] = embree_unavailable()
         embree = False
-    opts = dict(src=src, batch=batch, repeats=repeats, embree=embree)
+    opts = dict(src=src, batch=batch, repeats=repeats, embree=embree, clock=clock)
     # one untimed plan and build first: the first call's imports are not the smallest scene's cost
     recommended_grid(Scene(*sphere_mesh(20)), levels="1", **src)
     targets = [n for n in sizes if n <= max_triangles]
@@ -539,7 +549,7 @@ def scale_bench(*, max_triangles: int = DEFAULT_MAX_TRIANGLES, sizes=SCALE_SIZES
         n = [r["triangles"] for r in series]
         exponents["embree_ns_per_ray"] = fit_exponent(n, [1e3 / r["embree"]["mrays_per_s"] for r in series])
         exponents["embree_build_s"] = fit_exponent(n, [r["embree"]["build_s"] for r in series])
-    return dict(rows=rows, exponents=exponents, batch=batch, repeats=repeats, skipped=skipped,
+    return dict(rows=rows, exponents=exponents, batch=batch, repeats=repeats, clock=clock, skipped=skipped,
                 largest=None if largest is None else dict(
                     triangles=largest["triangles"], predicted_and_built_s=largest["predicted_and_built_s"],
                     refs_per_s=largest["refs_per_s"], bytes_per_triangle=largest["bytes_per_triangle"]))
@@ -574,6 +584,9 @@ def add_parser(sub):
                     help=f"comma-separated ray sets (default {','.join(RAY_SETS)})")
     sp.add_argument("--no-trimesh", action="store_true", help="leave trimesh's ray module out")
     sp.add_argument("--mailbox", action="store_true", help="gridcal's grids mailbox (each triangle tested once per ray)")
+    sp.add_argument("--clock", default="thread", choices=CLOCKS,
+                    help="time each call by the thread's CPU time (default: waiting for a core on a busy host is "
+                         "left out) or by wall time")
     sp.add_argument("--scale", action="store_true", help="the scaling benchmark instead")
     sp.add_argument("--max-triangles", type=positive_number("--max-triangles"), default=DEFAULT_MAX_TRIANGLES,
                     metavar="N", help=f"largest sphere of --scale (default {DEFAULT_MAX_TRIANGLES:g})")
@@ -616,14 +629,15 @@ def cmd_bench(args) -> int:
                 raise UserError(f"--max-triangles must be a whole number, got {args.max_triangles:g}")
             result = scale_bench(max_triangles=int(args.max_triangles), meshes=tuple(args.meshes),
                                  batch=args.batch or SCALE_BATCH, repeats=args.repeats or SCALE_REPEATS,
-                                 progress=show, **src)
+                                 clock=args.clock, progress=show, **src)
         else:
             scenes = [Scene.load(m) for m in (args.meshes or DEFAULT_SCENES)]
             result = dict(scenes=[bench_scene(s, batch=args.batch or DEFAULT_BATCH,
                                               repeats=args.repeats or DEFAULT_REPEATS, ray_sets=ray_sets,
-                                              trimesh=not args.no_trimesh, mailbox=args.mailbox, progress=show,
-                                              **src) for s in scenes])
+                                              trimesh=not args.no_trimesh, mailbox=args.mailbox,
+                                              clock=args.clock, progress=show, **src) for s in scenes])
         result["pinning"] = pin.note
+        result["clock"] = args.clock
     result["constants"] = source_note
     from .predict import _plain
 
@@ -675,7 +689,7 @@ def _print_bench(result: dict) -> None:
                                         f"{100 * s['min_agreement']:.1f}% of rays for some contender")
     console.print(f"first hits agree: both miss, or t within {T_REL_TOL:g} relative on the same triangle or a tie; "
                   f"needed on >= {100 * MIN_AGREEMENT:.1f}% of rays. Embree: {EmbreeTracer.api}. "
-                  f"{result['constants']}; {result['pinning']}")
+                  f"{result['constants']}; {result['pinning']}; clock {result['clock']}")
 
 
 def _print_scale(result: dict) -> None:
@@ -709,4 +723,4 @@ def _print_scale(result: dict) -> None:
                   "triangle)\n")
     for n, why in result.get("skipped", {}).items():
         out.write(f"skipped {n}: {why}\n")
-    out.write(f"{result['constants']}; {result['pinning']}\n")
+    out.write(f"{result['constants']}; {result['pinning']}; clock {result['clock']}\n")

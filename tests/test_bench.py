@@ -148,6 +148,7 @@ def test_scale_rows_and_exponents():
     (["bench", "no-such-scene"], "no-such-scene"),
     (["bench", "--scale", "--max-triangles", "1500.5"], "whole number"),
     (["bench", "--ratio", "-1"], "ratio"),
+    (["bench", "--clock", "sundial"], "sundial"),
 ])
 def test_bad_input_is_one_line_and_exit_2(argv, words, capsys):
     assert main(argv) == 2
