@@ -595,11 +595,11 @@ def add_parser(sub):
 
 
 def _source(args) -> tuple[dict, str]:
-    from .predict import DEFAULT_CALIBRATION, _constants_from_args
+    from .predict import DEFAULT_CALIBRATION, constants_from_args
 
     if args.ratio is None and not args.calibration and not Path(DEFAULT_CALIBRATION).exists():
         return dict(ratio=1.0), f"no calibration: ratio T_int/T_step = 1 assumed (./{DEFAULT_CALIBRATION} absent)"
-    src = _constants_from_args(args)
+    src = constants_from_args(args)
     if "ratio" in src:
         return src, f"ratio T_int/T_step = {src['ratio']:g} (given)"
     return src, f"calibration {args.calibration or DEFAULT_CALIBRATION}"
@@ -639,9 +639,9 @@ def cmd_bench(args) -> int:
         result["pinning"] = pin.note
         result["clock"] = args.clock
     result["constants"] = source_note
-    from .predict import _plain
+    from .predict import json_ready
 
-    result = _plain(result)
+    result = json_ready(result)
     if args.json:
         sys.stdout.write(json.dumps(result, indent=2, allow_nan=False) + "\n")
         return 0

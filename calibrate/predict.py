@@ -736,7 +736,7 @@ def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analyt
     if "simulation" in plan:
         out["simulation"] = plan["simulation"]
     out["timing_s"] = time.perf_counter() - t0
-    return _plain(out)
+    return json_ready(out)
 
 
 def recommended_grid(scene, *, constants=None, samples=None, ratio=None, levels="auto", mailbox=False):
@@ -778,14 +778,14 @@ def recommended_grid(scene, *, constants=None, samples=None, ratio=None, levels=
     return grid, dict(levels=n_levels, resolution=top, predict_s=t1 - t0, build_s=t2 - t1)
 
 
-def _plain(x):
+def json_ready(x):
     """numpy scalars/arrays and tuples -> JSON types; non-finite floats -> None."""
     if isinstance(x, dict):
-        return {str(key): _plain(v) for key, v in x.items()}
+        return {str(key): json_ready(v) for key, v in x.items()}
     if isinstance(x, (list, tuple)):
-        return [_plain(v) for v in x]
+        return [json_ready(v) for v in x]
     if isinstance(x, np.ndarray):
-        return _plain(x.tolist())
+        return json_ready(x.tolist())
     if isinstance(x, (bool, np.bool_)):
         return bool(x)
     if isinstance(x, (int, np.integer)):
@@ -799,6 +799,9 @@ def _plain(x):
 # ---------------------------------------------------------------------------------------
 # command line
 # ---------------------------------------------------------------------------------------
+
+_plain = json_ready  # the names render and paper import
+
 
 def add_parser(sub):
     """Register the ``predict`` verb on an argparse subparsers object; returns its parser."""
@@ -823,7 +826,9 @@ def add_parser(sub):
     return sp
 
 
-def _constants_from_args(args) -> dict:
+def constants_from_args(args) -> dict:
+    """The constants source of a verb's ``--ratio`` / ``--calibration`` arguments (``ratio=`` or
+    ``samples=`` and ``constants=`` for :func:`predict`); no calibration file raises UserError."""
     if getattr(args, "ratio", None) is not None:
         return dict(ratio=args.ratio)
     path = Path(args.calibration) if getattr(args, "calibration", None) else Path(DEFAULT_CALIBRATION)
@@ -838,12 +843,15 @@ def _constants_from_args(args) -> dict:
                 constants={f"{n}_ns": getattr(k, n) for n in ("t_setup", "t_step", "t_int", "t_sub")})
 
 
+_constants_from_args = constants_from_args  # the name render and paper import
+
+
 def cmd_predict(args) -> int:
     """Run the ``predict`` verb: JSON on stdout with ``--json``, else rich tables."""
     import json
     import sys
 
-    src = _constants_from_args(args)
+    src = constants_from_args(args)
     scene = Scene.load(args.mesh)
     slow = args.fidelity == "simulated" or (args.levels != "1" and args.fidelity == "analytic")
     if slow and not args.quiet and not args.json:
