@@ -166,3 +166,16 @@ def test_recommended_grid_is_what_predict_recommends(name):
         grid, plan = recommended_grid(scene, ratio=1.0, levels=levels)
         assert plan["levels"] == len(p["levels"]) == grid.info["levels"]
         assert plan["resolution"] == p["levels"][0]["resolution"] == list(grid.resolution)
+
+
+def test_thread_clock_leaves_out_waiting_and_wall_clock_does_not():
+    import time
+
+    from calibrate.bench import interleaved
+
+    calls = {"waits": lambda: time.sleep(0.02)}
+    wall = interleaved(calls, repeats=2, warmups=0, clock="wall")["waits"]
+    thread = interleaved(calls, repeats=2, warmups=0, clock="thread")["waits"]
+    assert min(wall) >= 20_000_000 and max(thread) < 10_000_000
+    with pytest.raises(ValueError, match="clock"):
+        interleaved(calls, repeats=1, clock="sundial")
