@@ -668,20 +668,22 @@ def _print_bench(result: dict) -> None:
         names = [n for n in CONTENDERS if n in s["mrays_per_s"]]
         for n in names:
             table.add_column(n, justify="right")
-        table.add_column("agreement with gridcal-uniform", justify="left")
+        table.add_column("first hits agree with uniform", justify="left")
         for rs, v in s["ray_sets"].items():
             cells = []
             for n in names:
                 r = v["rates"].get(n)
                 cells.append("-" if r is None else f"{r['mrays_per_s']:.3g} ({100 * r['spread']:.0f}%)")
-            agree = ", ".join(f"{n} {100 * a['agree']:.2f}%" + ("" if a["ok"] else " [red]LOW[/red]")
+            agree = ", ".join(f"{n.replace('gridcal-', '')} {100 * a['agree']:.2f}%"
+                              + ("" if a["ok"] else " [red]LOW[/red]")
                               + (f" ({a['ties']} ties)" if a["ties"] else "")
                               for n, a in v["agreement"].items())
             table.add_row(rs, f"{100 * v['hits']:.0f}%", *cells, agree)
         table.add_row("all", "", *[f"{s['mrays_per_s'][n]:.3g}" for n in names], "")
         console.print(table)
         if s["ratio_vs_embree"]:
-            console.print("ratio vs Embree: " + ", ".join(f"{n} {r:.2f}" for n, r in s["ratio_vs_embree"].items()))
+            console.print("ratio vs Embree: " + ", ".join(f"{n} {r:.2f}" if r >= 0.1 else f"{n} {r:.2g}"
+                                                          for n, r in s["ratio_vs_embree"].items()))
         for n, why in s["skipped"].items():
             console.print(f"skipped {n}: {why}")
         if not s["agreement_ok"]:
