@@ -56,7 +56,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._grid import Grid, Scene
+from ._grid import Scene
 from ._io import UserError
 
 #: Rays per timed call (every contender, the same batch).
@@ -583,7 +583,8 @@ def add_parser(sub):
     sp.add_argument("--rays", default=",".join(RAY_SETS), metavar="SETS",
                     help=f"comma-separated ray sets (default {','.join(RAY_SETS)})")
     sp.add_argument("--no-trimesh", action="store_true", help="leave trimesh's ray module out")
-    sp.add_argument("--mailbox", action="store_true", help="gridcal's grids mailbox (each triangle tested once per ray)")
+    sp.add_argument("--mailbox", action="store_true",
+                    help="gridcal's grids mailbox (each triangle tested once per ray)")
     sp.add_argument("--clock", default="thread", choices=CLOCKS,
                     help="time each call by the thread's CPU time (default: waiting for a core on a busy host is "
                          "left out) or by wall time")
