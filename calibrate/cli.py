@@ -280,9 +280,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     from . import export as _export
     from . import predict as _predict
+    from . import tradeoff as _tradeoff
 
     _predict.add_parser(sub)
     _export.add_parser(sub)
+    _tradeoff.add_parser(sub)
     return p
 
 
