@@ -278,11 +278,13 @@ def build_parser() -> argparse.ArgumentParser:
     sp = verb("scenes", "list the built-in scenes with their statistics")
     sp.set_defaults(func=cmd_scenes)
 
+    from . import compare as _compare
     from . import export as _export
     from . import predict as _predict
 
     _predict.add_parser(sub)
     _export.add_parser(sub)
+    _compare.add_parser(sub)
     return p
 
 

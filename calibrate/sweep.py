@@ -32,7 +32,7 @@ from __future__ import annotations
 import math
 import time
 import weakref
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Callable, Sequence
 
 import numpy as np
@@ -60,6 +60,8 @@ SWEEP_MIN_VALUE_NS = 10_000_000
 SWEEP_WARMUPS = 1
 #: A spec whose top level would exceed this many cells is not built (memory and time).
 MAX_SWEEP_CELLS = 2 ** 25
+#: A grid whose build would take more memory than this (bytes) is not built.
+MAX_SWEEP_MEMORY_BYTES = 2 ** 31
 #: fit_minimum: points each side of the lowest one that the quadratic goes through.
 FIT_HALF_WINDOW = 2
 #: Clocks a value may be read with (see _timed): the timing thread's CPU time leaves out
@@ -108,7 +110,7 @@ class GridSpec:
         (``rule``: total cells times ``sub_scale^3``).
     scale, exponents, threshold : the kernel rule's constant, per-level exponents
         and the references a cell holds before it subdivides.
-    label : a name for reports.
+    label : a name for reports (not part of the spec's identity: equal specs are one grid).
     """
 
     kind: str
@@ -120,7 +122,7 @@ class GridSpec:
     scale: float = MANTA_SCALE
     exponents: tuple | None = None
     threshold: int = DEFAULT_SUBDIVIDE_THRESHOLD
-    label: str = ""
+    label: str = field(default="", compare=False)
 
     def __post_init__(self):
         if self.kind not in ("uniform", "nested"):
@@ -173,16 +175,16 @@ class GridSpec:
                 d.update(scale=self.scale, exponents=None if self.exponents is None else list(self.exponents))
         return d
 
-    def build(self, scene: Scene, *, mailbox: bool = False) -> Grid:
-        """The grid over ``scene`` (a :class:`calibrate._grid.Grid`)."""
+    def build(self, scene: Scene, *, mailbox: bool = False, memory_limit: int | None = None) -> Grid:
+        """The grid over ``scene`` (a :class:`calibrate._grid.Grid`); ``memory_limit`` in bytes."""
         if self.kind == "uniform":
-            return Grid.uniform(scene, self.top, mailbox=mailbox)
+            return Grid.uniform(scene, self.top, mailbox=mailbox, memory_limit=memory_limit)
         if self.subgrids == "fixed":
             sub = np.zeros((self.top_cells, 3), dtype=np.int64)
             occupied = self._occupied(scene).reshape(-1) > self.threshold
             sub[occupied] = self.levels[1]
             return Grid.nested(scene, levels=2, resolution=self.top, subgrid_resolutions=sub,
-                               threshold=self.threshold, mailbox=mailbox)
+                               threshold=self.threshold, mailbox=mailbox, memory_limit=memory_limit)
         if self.subgrids == "rule":
             from ._grid import manta_rule
 
@@ -191,14 +193,14 @@ class GridSpec:
             # (scale n)^e cells times sub_scale^3  <=>  scale' = scale * sub_scale^(3 / e) at depth 1
             scale = self.scale * self.sub_scale ** (3.0 / exps[1])
             return Grid.nested(scene, levels=self.depth, resolution=self.top, scale=scale, exponents=exps,
-                               threshold=self.threshold, mailbox=mailbox)
+                               threshold=self.threshold, mailbox=mailbox, memory_limit=memory_limit)
         sub = model_subgrid_resolutions(scene, self.top, self.depth, self.ratio)
         if self.sub_scale != 1.0:
             nz = sub[:, 0] > 0
             sub = sub.copy()
             sub[nz] = np.clip(np.rint(sub[nz] * self.sub_scale), 1, 2 ** 31 - 1).astype(sub.dtype)
         return Grid.nested(scene, levels=self.depth, resolution=self.top, subgrid_resolutions=sub,
-                           threshold=self.threshold, mailbox=mailbox)
+                           threshold=self.threshold, mailbox=mailbox, memory_limit=memory_limit)
 
     def _occupied(self, scene: Scene) -> np.ndarray:
         return Grid.uniform(scene, self.top).top_counts()
@@ -236,7 +238,7 @@ def _as_grid(scene, spec_or_grid, mailbox=False):
     if isinstance(spec_or_grid, Grid):
         return spec_or_grid
     if isinstance(spec_or_grid, GridSpec):
-        return spec_or_grid.build(scene, mailbox=mailbox)
+        return spec_or_grid.build(scene, mailbox=mailbox, memory_limit=MAX_SWEEP_MEMORY_BYTES)
     raise ValueError(f"expected a GridSpec or a Grid, got {type(spec_or_grid).__name__}")
 
 
@@ -298,7 +300,7 @@ def sweep(scene: Scene, specs: Sequence, rays, *, rounds: int = SWEEP_ROUNDS,
     Every grid is built first and its work counted; then all are timed together by
     :func:`calibrate.protocol.measure`, each round in a fresh random order drawn from
     ``seed``.  A spec whose top level exceeds :data:`MAX_SWEEP_CELLS` cells, or whose
-    build fails (memory), gives a dict with ``skipped`` (the reason) and no times.
+    build fails (more than :data:`MAX_SWEEP_MEMORY_BYTES`), gives a dict with ``skipped`` (the reason) and no times.
 
     Returns one dict per spec, in order (see :func:`measure_time_per_ray`), each with
     ``spec`` (its :meth:`GridSpec.to_dict`, or None for a Grid).
