@@ -177,7 +177,8 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
             curves.append(dict(levels=L, centre=centres[L].to_dict(), points=pts, fit=None))
             all_points.extend(pts)
             continue
-        fit = _sweep.fit_minimum([p["factor"] for p in ok], [p["median_ns"] for p in ok])
+        fit = _sweep.fit_minimum([p["factor"] for p in ok], [p["median_ns"] for p in ok],
+                                 mads=[p["mad_ns"] for p in ok])
         best_spec = _curve_spec(centres[L], fit["scale"])
         fit = dict(fit, factor=fit.pop("scale"), resolution=list(best_spec.top),
                    sub_scale=best_spec.sub_scale if best_spec.kind == "nested" else None)
@@ -362,6 +363,8 @@ def add_parser(sub):
                     help=f"rays per timed batch (default {DEFAULT_RAY_COUNT})")
     sp.add_argument("--rounds", type=_count_arg("--rounds", 1), default=_sweep.SWEEP_ROUNDS, metavar="N",
                     help=f"timed values per grid (default {_sweep.SWEEP_ROUNDS})")
+    sp.add_argument("--min-time", type=positive_number("--min-time"), default=_sweep.SWEEP_MIN_VALUE_NS * 1e-9,
+                    metavar="SECONDS", help=f"shortest timed value (default {_sweep.SWEEP_MIN_VALUE_NS * 1e-9:g} s)")
     sp.add_argument("--plot", metavar="FILE", help="write a PNG: measured points, predicted curve, choices")
     sp.set_defaults(func=cmd_compare)
     return sp
@@ -389,7 +392,8 @@ def cmd_compare(args) -> int:
                 bar.status(f"[{i + 1}/{len(scenes)}] {text}")
 
             results.append(compare_scene(scene, levels=args.levels, rays=args.rays, points=args.points,
-                                         ray_count=args.ray_count, rounds=args.rounds, progress=bar,
+                                         ray_count=args.ray_count, rounds=args.rounds,
+                                         min_time=args.min_time, progress=bar,
                                          status=status, **src))
     summary = summarise(results)
     if args.plot:

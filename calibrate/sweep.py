@@ -62,8 +62,12 @@ SWEEP_WARMUPS = 1
 MAX_SWEEP_CELLS = 2 ** 25
 #: A grid whose build would take more memory than this (bytes) is not built.
 MAX_SWEEP_MEMORY_BYTES = 2 ** 31
-#: fit_minimum: points each side of the lowest one that the quadratic goes through.
-FIT_HALF_WINDOW = 2
+#: fit_minimum: the quadratic goes through the points within this factor in scale of the
+#: lowest one, and must agree with the lowest point within this relative difference (or
+#: its noise, if larger).
+FIT_HALF_SPAN = 2.0
+FIT_AGREEMENT = 0.02
+FIT_MIN_NEIGHBOURS = 2
 #: Clocks a value may be read with (see _timed): the timing thread's CPU time leaves out
 #: the time the thread waited for a core, so a busy host disturbs the values less.
 CLOCKS = ("thread", "wall")
@@ -374,15 +378,19 @@ def best_point(points: Sequence[dict], key: str = "median_ns") -> int:
     return best
 
 
-def fit_minimum(scales, times, *, half_window: int = FIT_HALF_WINDOW) -> dict:
+def fit_minimum(scales, times, *, mads=None, half_span: float = FIT_HALF_SPAN) -> dict:
     """Smooth minimum of a measured curve ``times(scales)``.
 
     A least-squares quadratic in ``log time`` against ``log scale`` through the lowest
-    measured point and ``half_window`` neighbours each side (fewer at the ends of the
-    sweep).  Its vertex is the minimum when the parabola opens upwards and the vertex
-    lies within the fitted points' span; otherwise the lowest measured point is kept.
+    measured point and its neighbours within a factor ``half_span`` in scale each side
+    (at least ``FIT_MIN_NEIGHBOURS`` each side where the sweep has them, so the fit has
+    points to disagree with).  Its vertex is the minimum when
+    the parabola opens upwards, the vertex lies within the fitted points' span, and the
+    curve at the lowest point agrees with it within the noise (3 scaled MADs from
+    ``mads``, at least ``FIT_AGREEMENT`` relative): a curve with a kink there (a cache
+    level, say) is not a parabola, and the lowest measured point is kept instead.
 
-    scales : (J,) positive, increasing; times : (J,) positive (ns).
+    scales : (J,) positive, increasing; times : (J,) positive (ns); mads : (J,) or None.
     Returns dict ``scale``, ``time`` (the curve's value there), ``fitted`` (bool),
     ``at_edge`` (the lowest point is the first or last of the sweep), ``window``
     ([first, last] index used), ``coef`` (quadratic coefficients, highest first).
@@ -395,16 +403,23 @@ def fit_minimum(scales, times, *, half_window: int = FIT_HALF_WINDOW) -> dict:
         raise ValueError("fit_minimum needs finite positive scales and times")
     if np.any(np.diff(s) <= 0):
         raise ValueError("fit_minimum needs increasing scales")
+    if not half_span > 1:
+        raise ValueError(f"half_span must be > 1, got {half_span!r}")
     j = int(np.argmin(t))
     at_edge = j == 0 or j == s.size - 1
-    lo, hi = max(0, j - half_window), min(s.size, j + half_window + 1)
+    near = np.flatnonzero(np.abs(np.log(s / s[j])) <= math.log(half_span) * (1 + 1e-12))
+    lo = min(int(near.min()), max(0, j - FIT_MIN_NEIGHBOURS))
+    hi = max(int(near.max()), min(s.size - 1, j + FIT_MIN_NEIGHBOURS)) + 1
     x, y = np.log(s[lo:hi]), np.log(t[lo:hi])
     out = dict(scale=float(s[j]), time=float(t[j]), fitted=False, at_edge=bool(at_edge), window=[lo, hi - 1],
                coef=None)
     if x.size >= 3:
         coef = np.polyfit(x, y, 2)
         a, b, _ = coef
-        if a > 0:
+        noise = FIT_AGREEMENT if mads is None else max(FIT_AGREEMENT,
+                                                       3.0 * protocol.MAD_TO_SIGMA * float(mads[j]) / t[j])
+        agrees = abs(math.exp(np.polyval(coef, math.log(s[j]))) / t[j] - 1.0) <= noise
+        if a > 0 and agrees:
             xv = -b / (2.0 * a)
             if x[0] <= xv <= x[-1]:
                 out.update(scale=float(math.exp(xv)), time=float(math.exp(np.polyval(coef, xv))), fitted=True,
