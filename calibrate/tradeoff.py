@@ -298,6 +298,80 @@ def _fit_cell(design, seed):
 
 
 # ---------------------------------------------------------------------------------------
+# fidelity -> time to predict -> penalty against the measured optimum
+# ---------------------------------------------------------------------------------------
+
+#: Measured sweep per scene: uniform grids at the analytic resolution scaled per axis by
+#: 2^(j/4), j = -FIDELITY_SWEEP_STEPS..FIDELITY_SWEEP_STEPS (a factor 8 in cells each way),
+#: plus each fidelity's own resolution, timed interleaved (calibrate.sweep).
+FIDELITY_SWEEP_STEPS = 4
+FIDELITY_SWEEP_STEP = 2.0 ** 0.25
+#: Isotropic rays per sweep batch (the ray distribution the paper and analytic models assume).
+FIDELITY_RAYS = 4096
+QUICK_FIDELITY_SWEEP_STEPS = 2
+QUICK_FIDELITY_RAYS = 1024
+QUICK_SWEEP_ROUNDS = 3
+
+
+def fidelity_table(scene: Scene, constants: dict, samples: dict, *, steps: int = FIDELITY_SWEEP_STEPS,
+                   n_rays: int = FIDELITY_RAYS, rounds: int | None = None, seed: int = 0, progress=None,
+                   status=None) -> list:
+    """Time to predict and penalty against the measured optimum, per fidelity, for one scene.
+
+    constants, samples : a calibration's medians and posterior samples (``t_*_ns``), as
+    :func:`calibrate.predict.predict` takes them.  Each fidelity predicts a uniform grid
+    (``levels=1``); the measured sweep times uniform grids around the analytic resolution
+    and every fidelity's resolution on the same isotropic rays, interleaved.  The measured
+    optimum is the lower of the sweep's lowest point and its smooth minimum
+    (:func:`calibrate.sweep.fit_minimum`).
+
+    Returns one dict per fidelity (paper, analytic, simulated, measured): ``scene``,
+    ``fidelity``, ``time_s`` (to predict; for ``measured`` the sweep's build-and-time
+    wall time), ``resolution``, ``ns_per_ray`` (measured at that resolution), ``penalty``.
+    """
+    from . import sweep as _sweep
+    from .predict import FIDELITIES, predict
+    from .rays import isotropic
+
+    res, took = {}, {}
+    for f in FIDELITIES:
+        if status is not None:
+            status(f"fidelity: {scene.name}, predicting ({f})")
+        t0 = time.perf_counter()
+        pred = predict(scene, constants=constants, samples=samples, fidelity=f, levels="1")
+        took[f] = time.perf_counter() - t0
+        res[f] = tuple(pred["levels"][0]["resolution"])
+    factors = [FIDELITY_SWEEP_STEP ** j for j in range(-steps, steps + 1)]
+    curve = list(dict.fromkeys(_sweep.scaled_resolutions(res["analytic"], factors)))
+    specs = curve + [r for r in dict.fromkeys(res.values()) if r not in curve]
+    o, d = isotropic(scene.box_lo, scene.box_hi, n_rays, seed)
+    if status is not None:
+        status(f"fidelity: {scene.name}, measured sweep of {len(specs)} grids")
+    t0 = time.perf_counter()
+    kw = {} if rounds is None else dict(rounds=rounds)
+    points = _sweep.sweep(scene, [_sweep.GridSpec("uniform", [r]) for r in specs], (o, d), seed=seed,
+                          progress=progress, **kw)
+    took["measured"] = time.perf_counter() - t0
+    ns = {r: p.get("median_ns") for r, p in zip(specs, points)}
+    on_curve = [(i, r) for i, r in enumerate(curve) if ns.get(r) is not None]
+    if not on_curve:
+        raise UserError(f"{scene.name}: no grid of the sweep could be built and timed")
+    lowest = min(on_curve, key=lambda ir: ns[ir[1]])[1]
+    cells = [float(np.prod(r)) for _, r in on_curve]
+    best_t = ns[lowest]
+    if len(on_curve) >= 3 and all(b > a for a, b in zip(cells, cells[1:])):
+        fit = _sweep.fit_minimum(cells, [ns[r] for _, r in on_curve])
+        best_t = min(best_t, float(fit["time"]))
+    res["measured"] = lowest
+    rows = []
+    for f in (*FIDELITIES, "measured"):
+        t = ns.get(res[f])
+        rows.append(dict(scene=scene.name, fidelity=f, time_s=took[f], resolution=list(res[f]), ns_per_ray=t,
+                         penalty=None if t is None else _sweep.penalty(t, best_t)))
+    return rows
+
+
+# ---------------------------------------------------------------------------------------
 # the verb
 # ---------------------------------------------------------------------------------------
 
@@ -334,6 +408,18 @@ def tradeoff(scenes=None, *, budget_s: float | None = None, quick: bool = False,
                    rays=leaks[ix]["rays"], by_kind=leaks[ix]["by_kind"]) for ix in INTERSECTORS],
         precision=dict(offered=["double"], note=PRECISION_NOTE))
     report["budget"] = dict(run_budget_s=budget_s, rows=budget_curve(stages, stats))
+    cal = run_result.calibration
+    from . import calfile
+
+    samples = {k: v for k, v in calfile.samples_by_name(cal).items() if k.endswith("_ns")}
+    medians = {k: v["median"] for k, v in cal["constants"].items() if k.endswith("_ns") and v}
+    fid = []
+    for sc in loaded:
+        fid += fidelity_table(sc, medians, samples, seed=seed, progress=progress, status=status,
+                              steps=QUICK_FIDELITY_SWEEP_STEPS if quick else FIDELITY_SWEEP_STEPS,
+                              n_rays=QUICK_FIDELITY_RAYS if quick else FIDELITY_RAYS,
+                              rounds=QUICK_SWEEP_ROUNDS if quick else None)
+    report["fidelity"] = dict(rows=fid, constants="the budget run's last stage (its calibration)")
     report["calibration"] = dict(constants=run_result.calibration["constants"],
                                  holdout_mare=run_result.holdout_mare)
     report["wall_s"] = time.monotonic() - t0
