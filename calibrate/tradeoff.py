@@ -74,9 +74,9 @@ PRECISION_NOTE = ("the kernels are double precision only (kernels/gridcal.h): sc
 
 # --quick: two small scenes in the in-context suite, short values, a tiny budget, one small scene, few rays.
 QUICK_SCENES = ("cylinder196",)
-QUICK_BUDGET_S = 15.0
+QUICK_BUDGET_S = 20.0
 QUICK_SUITES = dict(CONTEXT_SCENES=("cylinder196", "scattered-skinny"))
-QUICK_RUN = dict(MIN_VALUE_NS=5_000_000, FIRST_ROUNDS=4, STAGE_ROUNDS=3, FIT_RESERVE_S=1.0)
+QUICK_RUN = dict(MIN_VALUE_NS=5_000_000, FIRST_ROUNDS=5, STAGE_ROUNDS=3, FIT_RESERVE_S=1.0)
 QUICK_LEAK_MESHES = 2
 QUICK_LEAK_EDGE_POINTS = 1000
 QUICK_T_INT_ROUNDS = 4
@@ -227,7 +227,7 @@ def wilson_interval(k: int, n: int, z: float = LEAK_CI_Z) -> tuple:
     denom = 1.0 + z * z / n
     centre = (p + z * z / (2 * n)) / denom
     half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
-    return max(0.0, centre - half), min(1.0, centre + half)
+    return (0.0 if k == 0 else max(0.0, centre - half)), (1.0 if k == n else min(1.0, centre + half))
 
 
 def count_leaks(scene: Scene, origins, directions, kind, intersector: str) -> dict:
