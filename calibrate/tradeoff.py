@@ -436,8 +436,11 @@ def _plain(x):
 # figure
 # ---------------------------------------------------------------------------------------
 
-#: Figure resolution, dots per inch (calibrate.plots uses the same).
-DPI = 100
+#: Figure resolution, dots per inch.
+DPI = 90
+#: Penalty axes are logarithmic above this many per cent and linear below (0 stays on the axis).
+PENALTY_LINEAR_BELOW_PCT = 0.1
+INTERSECTOR_COLOURS = {"moller-trumbore": "C3", "watertight": "C2"}
 
 
 def plot(report: dict, path) -> Path:
@@ -453,7 +456,11 @@ def plot(report: dict, path) -> Path:
 
     path = Path(path)
     has_fid = bool(report.get("fidelity", {}).get("rows"))
-    fig, axes = plt.subplots(1, 3 + has_fid, figsize=(4.2 * (3 + has_fid), 3.6))
+    fig, grid = plt.subplots(2, 2, figsize=(9.6, 7.2))
+    axes = grid.ravel()
+    if not has_fid:
+        axes[2].axis("off")
+        axes = [axes[0], axes[1], axes[3]]
     rows = report["budget"]["rows"]
     b = [r["budget_s"] for r in rows]
     ax = axes[0]
@@ -470,6 +477,7 @@ def plot(report: dict, path) -> Path:
                 label=f"{name}: vs last stage")
     ax.set_xlabel("calibration budget (s)")
     ax.set_ylabel("time penalty of the prediction (%)")
+    ax.set_yscale("symlog", linthresh=PENALTY_LINEAR_BELOW_PCT)
     ax.set_ylim(bottom=0)
     ax.set_title("budget -> penalty")
     ax.legend(fontsize=7)
@@ -478,24 +486,34 @@ def plot(report: dict, path) -> Path:
         fid = report["fidelity"]["rows"]
         for i, name in enumerate(dict.fromkeys(r["scene"] for r in fid)):
             mine = [r for r in fid if r["scene"] == name]
+            mine = [r for r in mine if r["penalty"] is not None]
             ax.plot([r["time_s"] for r in mine], [100 * r["penalty"] for r in mine], "o-", color=f"C{i}", label=name)
-            for r in mine:
-                ax.annotate(r["fidelity"], (r["time_s"], 100 * r["penalty"]), fontsize=7,
-                            textcoords="offset points", xytext=(3, 3))
+            for r in mine if i == 0 else []:  # fidelities named once: every scene has them in the same order
+                if r["penalty"] is not None:
+                    ax.annotate(r["fidelity"], (r["time_s"], 100 * r["penalty"]), fontsize=7,
+                                textcoords="offset points", xytext=(3, 3))
         ax.set_xscale("log")
+        ax.set_yscale("symlog", linthresh=PENALTY_LINEAR_BELOW_PCT)
+        ax.set_ylim(bottom=0)
         ax.set_xlabel("time to predict (s)")
         ax.set_ylabel("penalty vs measured optimum (%)")
         ax.set_title("fidelity -> time and penalty")
         ax.legend(fontsize=7)
     ax = axes[-1]
-    ix = [r for r in report["intersector"]["rows"] if r["t_int_ns"] is not None]
+    ix = report["intersector"]["rows"]
     x = np.arange(len(ix))
-    med = [r["t_int_ns"]["median"] for r in ix]
-    err = [[m - r["t_int_ns"]["ci95"][0] for m, r in zip(med, ix)], [r["t_int_ns"]["ci95"][1] - m for m, r in zip(med, ix)]]
-    ax.bar(x, med, yerr=err, color=["C3", "C2"][: len(ix)], capsize=4)
     for xi, r in zip(x, ix):
-        ax.annotate(f"{r['leaks_per_million']:,.0f} leaks\nper million", (xi, 0.5 * r["t_int_ns"]["median"]),
-                    ha="center", fontsize=8, color="w")
+        c = r["t_int_ns"]
+        colour = INTERSECTOR_COLOURS.get(r["intersector"], "C0")
+        if c is None:
+            ax.annotate("T_int not fitted", (xi, 0.0), ha="center", va="bottom", fontsize=8)
+            top = 0.0
+        else:
+            ax.bar([xi], [c["median"]], yerr=[[c["median"] - c["ci95"][0]], [c["ci95"][1] - c["median"]]],
+                   color=colour, capsize=4)
+            top = c["median"]
+        ax.annotate(f"{r['leaks_per_million']:,.0f} leaks\nper million", (xi, 0.5 * top if top else 1.0),
+                    ha="center", fontsize=8, color="w" if top else "k")
     ax.set_xticks(x, [r["intersector"] for r in ix])
     ax.set_ylabel("T_int (ns per test, 95% interval)")
     ax.set_title("intersector -> T_int and leaks")
