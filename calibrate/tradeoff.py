@@ -44,7 +44,7 @@ from models.uncertainty import posterior_optimum, summarise
 from . import run as _run
 from . import suites
 from ._grid import Grid, Scene
-from ._io import UserError, atomic_write_text
+from ._io import UserError
 from .rays import aimed_at_edges
 from .scenes import jittered_closed_mesh
 
@@ -259,7 +259,8 @@ def leak_table(n_meshes: int = LEAK_MESHES, edge_points: int = LEAK_EDGE_POINTS_
         lo, hi = wilson_interval(t["leaks"], t["rays"])
         out[ix] = dict(rays=t["rays"], leaks=t["leaks"], per_million=1e6 * t["leaks"] / t["rays"],
                        per_million_ci95=[1e6 * lo, 1e6 * hi],
-                       by_kind={k: dict(leaks=m, rays=n, per_million=1e6 * m / n) for k, (m, n) in t["by_kind"].items()})
+                       by_kind={k: dict(leaks=m, rays=n, per_million=1e6 * m / n)
+                                for k, (m, n) in t["by_kind"].items()})
     return out
 
 
