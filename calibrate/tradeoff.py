@@ -41,10 +41,11 @@ from models.effects import select_effects
 from models.general import Terms, cost_cubic, cubic_coefficients, solve_cell_cubic
 from models.uncertainty import posterior_optimum, summarise
 
+from . import calfile, suites
 from . import run as _run
-from . import suites
 from ._grid import Grid, Scene
 from ._io import UserError
+from .protocol import measure, pin_to_one_core
 from .rays import aimed_at_edges
 from .scenes import jittered_closed_mesh
 
@@ -271,7 +272,6 @@ def intersector_costs(seed: int = 0, rounds: int = T_INT_ROUNDS, progress=None) 
     or {error: why} when that intersector's measurements cannot be fitted (a busy host).
     """
     from .fit import ConvergenceError
-    from .protocol import measure, pin_to_one_core
 
     configs = {ix: [c for c in suites.isolated_configs(ix, seed) if c.suite == "cell"] for ix in INTERSECTORS}
     runs = {f"{ix}: {c.name}": c.run for ix, cs in configs.items() for c in cs}
@@ -292,7 +292,6 @@ def intersector_costs(seed: int = 0, rounds: int = T_INT_ROUNDS, progress=None) 
 
 
 def _fit_cell(design, seed):
-    from . import calfile
     from .fit import fit
 
     return calfile.constants_json(fit(design, seed=seed, required=("rays", "tests")))["t_int_ns"]
@@ -392,6 +391,8 @@ def tradeoff(scenes=None, *, budget_s: float | None = None, quick: bool = False,
         raise UserError(f"--budget must be a positive number of seconds, got {budget_s!r}")
     names = list(scenes) if scenes else list(QUICK_SCENES if quick else DEFAULT_SCENES)
     loaded = [Scene.load(s) for s in names]
+    if len({sc.name for sc in loaded}) < len(loaded):
+        raise UserError(f"scenes must have different names, got {', '.join(sc.name for sc in loaded)}")
     stats = {sc.name: sc.stats for sc in loaded}
     report = dict(quick=bool(quick), seed=seed, scenes=[dict(name=sc.name, triangles=sc.n_triangles) for sc in loaded])
 
@@ -411,16 +412,15 @@ def tradeoff(scenes=None, *, budget_s: float | None = None, quick: bool = False,
         precision=dict(offered=["double"], note=PRECISION_NOTE))
     report["budget"] = dict(run_budget_s=budget_s, rows=budget_curve(stages, stats))
     cal = run_result.calibration
-    from . import calfile
-
     samples = {k: v for k, v in calfile.samples_by_name(cal).items() if k.endswith("_ns")}
     medians = {k: v["median"] for k, v in cal["constants"].items() if k.endswith("_ns") and v}
     fid = []
     for sc in loaded:
-        fid += fidelity_table(sc, medians, samples, seed=seed, progress=progress, status=status,
-                              steps=QUICK_FIDELITY_SWEEP_STEPS if quick else FIDELITY_SWEEP_STEPS,
-                              n_rays=QUICK_FIDELITY_RAYS if quick else FIDELITY_RAYS,
-                              rounds=QUICK_SWEEP_ROUNDS if quick else None)
+        with pin_to_one_core():
+            fid += fidelity_table(sc, medians, samples, seed=seed, progress=progress, status=status,
+                                  steps=QUICK_FIDELITY_SWEEP_STEPS if quick else FIDELITY_SWEEP_STEPS,
+                                  n_rays=QUICK_FIDELITY_RAYS if quick else FIDELITY_RAYS,
+                                  rounds=QUICK_SWEEP_ROUNDS if quick else None)
     report["fidelity"] = dict(rows=fid, constants="the budget run's last stage (its calibration)")
     report["calibration"] = dict(constants=run_result.calibration["constants"],
                                  holdout_mare=run_result.holdout_mare)
