@@ -422,8 +422,8 @@ def tradeoff(scenes=None, *, budget_s: float | None = None, quick: bool = False,
                                   n_rays=QUICK_FIDELITY_RAYS if quick else FIDELITY_RAYS,
                                   rounds=QUICK_SWEEP_ROUNDS if quick else None)
     report["fidelity"] = dict(rows=fid, constants="the budget run's last stage (its calibration)")
-    report["calibration"] = dict(constants=run_result.calibration["constants"],
-                                 holdout_mare=run_result.holdout_mare)
+    report["calibration"] = dict(constants=run_result.calibration["constants"], holdout_mare=run_result.holdout_mare,
+                                 warnings=[w for w in run_result.warnings if not w.startswith("budget spent")])
     report["wall_s"] = time.monotonic() - t0
     return _plain(report)
 
