@@ -163,8 +163,9 @@ def _rays(scene: Scene, ray_set: str, seed: int):
     raise ValueError(f"unknown ray set {ray_set!r}")
 
 
-def context_configs(intersector: str, seed: int = 0, scenes=CONTEXT_SCENES) -> list[Config]:
-    """The in-context suite: built-in scenes x resolutions x ray sets."""
+def context_configs(intersector: str, seed: int = 0, scenes=None) -> list[Config]:
+    """The in-context suite: built-in scenes (default CONTEXT_SCENES) x resolutions x ray sets."""
+    scenes = CONTEXT_SCENES if scenes is None else scenes
     out = []
     for si, name in enumerate(scenes):
         scene = Scene.builtin(name)

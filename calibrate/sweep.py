@@ -32,7 +32,7 @@ from __future__ import annotations
 import math
 import time
 import weakref
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Callable, Sequence
 
 import numpy as np
@@ -60,8 +60,14 @@ SWEEP_MIN_VALUE_NS = 10_000_000
 SWEEP_WARMUPS = 1
 #: A spec whose top level would exceed this many cells is not built (memory and time).
 MAX_SWEEP_CELLS = 2 ** 25
-#: fit_minimum: points each side of the lowest one that the quadratic goes through.
-FIT_HALF_WINDOW = 2
+#: A grid whose build would take more memory than this (bytes) is not built.
+MAX_SWEEP_MEMORY_BYTES = 2 ** 31
+#: fit_minimum: the quadratic goes through the points within this factor in scale of the
+#: lowest one, and must agree with the lowest point within this relative difference (or
+#: its noise, if larger).
+FIT_HALF_SPAN = 2.0
+FIT_AGREEMENT = 0.02
+FIT_MIN_NEIGHBOURS = 2
 #: Clocks a value may be read with (see _timed): the timing thread's CPU time leaves out
 #: the time the thread waited for a core, so a busy host disturbs the values less.
 CLOCKS = ("thread", "wall")
@@ -108,7 +114,7 @@ class GridSpec:
         (``rule``: total cells times ``sub_scale^3``).
     scale, exponents, threshold : the kernel rule's constant, per-level exponents
         and the references a cell holds before it subdivides.
-    label : a name for reports.
+    label : a name for reports (not part of the spec's identity: equal specs are one grid).
     """
 
     kind: str
@@ -120,7 +126,7 @@ class GridSpec:
     scale: float = MANTA_SCALE
     exponents: tuple | None = None
     threshold: int = DEFAULT_SUBDIVIDE_THRESHOLD
-    label: str = ""
+    label: str = field(default="", compare=False)
 
     def __post_init__(self):
         if self.kind not in ("uniform", "nested"):
@@ -173,16 +179,16 @@ class GridSpec:
                 d.update(scale=self.scale, exponents=None if self.exponents is None else list(self.exponents))
         return d
 
-    def build(self, scene: Scene, *, mailbox: bool = False) -> Grid:
-        """The grid over ``scene`` (a :class:`calibrate._grid.Grid`)."""
+    def build(self, scene: Scene, *, mailbox: bool = False, memory_limit: int | None = None) -> Grid:
+        """The grid over ``scene`` (a :class:`calibrate._grid.Grid`); ``memory_limit`` in bytes."""
         if self.kind == "uniform":
-            return Grid.uniform(scene, self.top, mailbox=mailbox)
+            return Grid.uniform(scene, self.top, mailbox=mailbox, memory_limit=memory_limit)
         if self.subgrids == "fixed":
             sub = np.zeros((self.top_cells, 3), dtype=np.int64)
             occupied = self._occupied(scene).reshape(-1) > self.threshold
             sub[occupied] = self.levels[1]
             return Grid.nested(scene, levels=2, resolution=self.top, subgrid_resolutions=sub,
-                               threshold=self.threshold, mailbox=mailbox)
+                               threshold=self.threshold, mailbox=mailbox, memory_limit=memory_limit)
         if self.subgrids == "rule":
             from ._grid import manta_rule
 
@@ -191,14 +197,14 @@ class GridSpec:
             # (scale n)^e cells times sub_scale^3  <=>  scale' = scale * sub_scale^(3 / e) at depth 1
             scale = self.scale * self.sub_scale ** (3.0 / exps[1])
             return Grid.nested(scene, levels=self.depth, resolution=self.top, scale=scale, exponents=exps,
-                               threshold=self.threshold, mailbox=mailbox)
+                               threshold=self.threshold, mailbox=mailbox, memory_limit=memory_limit)
         sub = model_subgrid_resolutions(scene, self.top, self.depth, self.ratio)
         if self.sub_scale != 1.0:
             nz = sub[:, 0] > 0
             sub = sub.copy()
             sub[nz] = np.clip(np.rint(sub[nz] * self.sub_scale), 1, 2 ** 31 - 1).astype(sub.dtype)
         return Grid.nested(scene, levels=self.depth, resolution=self.top, subgrid_resolutions=sub,
-                           threshold=self.threshold, mailbox=mailbox)
+                           threshold=self.threshold, mailbox=mailbox, memory_limit=memory_limit)
 
     def _occupied(self, scene: Scene) -> np.ndarray:
         return Grid.uniform(scene, self.top).top_counts()
@@ -236,7 +242,7 @@ def _as_grid(scene, spec_or_grid, mailbox=False):
     if isinstance(spec_or_grid, Grid):
         return spec_or_grid
     if isinstance(spec_or_grid, GridSpec):
-        return spec_or_grid.build(scene, mailbox=mailbox)
+        return spec_or_grid.build(scene, mailbox=mailbox, memory_limit=MAX_SWEEP_MEMORY_BYTES)
     raise ValueError(f"expected a GridSpec or a Grid, got {type(spec_or_grid).__name__}")
 
 
@@ -298,7 +304,7 @@ def sweep(scene: Scene, specs: Sequence, rays, *, rounds: int = SWEEP_ROUNDS,
     Every grid is built first and its work counted; then all are timed together by
     :func:`calibrate.protocol.measure`, each round in a fresh random order drawn from
     ``seed``.  A spec whose top level exceeds :data:`MAX_SWEEP_CELLS` cells, or whose
-    build fails (memory), gives a dict with ``skipped`` (the reason) and no times.
+    build fails (more than :data:`MAX_SWEEP_MEMORY_BYTES`), gives a dict with ``skipped`` (the reason) and no times.
 
     Returns one dict per spec, in order (see :func:`measure_time_per_ray`), each with
     ``spec`` (its :meth:`GridSpec.to_dict`, or None for a Grid).
@@ -372,15 +378,19 @@ def best_point(points: Sequence[dict], key: str = "median_ns") -> int:
     return best
 
 
-def fit_minimum(scales, times, *, half_window: int = FIT_HALF_WINDOW) -> dict:
+def fit_minimum(scales, times, *, mads=None, half_span: float = FIT_HALF_SPAN) -> dict:
     """Smooth minimum of a measured curve ``times(scales)``.
 
     A least-squares quadratic in ``log time`` against ``log scale`` through the lowest
-    measured point and ``half_window`` neighbours each side (fewer at the ends of the
-    sweep).  Its vertex is the minimum when the parabola opens upwards and the vertex
-    lies within the fitted points' span; otherwise the lowest measured point is kept.
+    measured point and its neighbours within a factor ``half_span`` in scale each side
+    (at least ``FIT_MIN_NEIGHBOURS`` each side where the sweep has them, so the fit has
+    points to disagree with).  Its vertex is the minimum when
+    the parabola opens upwards, the vertex lies within the fitted points' span, and the
+    curve at the lowest point agrees with it within the noise (3 scaled MADs from
+    ``mads``, at least ``FIT_AGREEMENT`` relative): a curve with a kink there (a cache
+    level, say) is not a parabola, and the lowest measured point is kept instead.
 
-    scales : (J,) positive, increasing; times : (J,) positive (ns).
+    scales : (J,) positive, increasing; times : (J,) positive (ns); mads : (J,) or None.
     Returns dict ``scale``, ``time`` (the curve's value there), ``fitted`` (bool),
     ``at_edge`` (the lowest point is the first or last of the sweep), ``window``
     ([first, last] index used), ``coef`` (quadratic coefficients, highest first).
@@ -393,16 +403,23 @@ def fit_minimum(scales, times, *, half_window: int = FIT_HALF_WINDOW) -> dict:
         raise ValueError("fit_minimum needs finite positive scales and times")
     if np.any(np.diff(s) <= 0):
         raise ValueError("fit_minimum needs increasing scales")
+    if not half_span > 1:
+        raise ValueError(f"half_span must be > 1, got {half_span!r}")
     j = int(np.argmin(t))
     at_edge = j == 0 or j == s.size - 1
-    lo, hi = max(0, j - half_window), min(s.size, j + half_window + 1)
+    near = np.flatnonzero(np.abs(np.log(s / s[j])) <= math.log(half_span) * (1 + 1e-12))
+    lo = min(int(near.min()), max(0, j - FIT_MIN_NEIGHBOURS))
+    hi = max(int(near.max()), min(s.size - 1, j + FIT_MIN_NEIGHBOURS)) + 1
     x, y = np.log(s[lo:hi]), np.log(t[lo:hi])
     out = dict(scale=float(s[j]), time=float(t[j]), fitted=False, at_edge=bool(at_edge), window=[lo, hi - 1],
                coef=None)
     if x.size >= 3:
         coef = np.polyfit(x, y, 2)
         a, b, _ = coef
-        if a > 0:
+        noise = FIT_AGREEMENT if mads is None else max(FIT_AGREEMENT,
+                                                       3.0 * protocol.MAD_TO_SIGMA * float(mads[j]) / t[j])
+        agrees = abs(math.exp(np.polyval(coef, math.log(s[j]))) / t[j] - 1.0) <= noise
+        if a > 0 and agrees:
             xv = -b / (2.0 * a)
             if x[0] <= xv <= x[-1]:
                 out.update(scale=float(math.exp(xv)), time=float(math.exp(np.polyval(coef, xv))), fitted=True,

@@ -142,3 +142,12 @@ def test_fit_minimum_at_the_edge_keeps_the_lowest_point():
     assert fit["scale"] == 8.0 and fit["time"] == 50.0
     with pytest.raises(ValueError):
         fit_minimum([2.0, 1.0], [1.0, 1.0])
+
+
+def test_fit_minimum_keeps_the_lowest_point_at_a_kink():
+    """A curve that jumps right after its minimum (a cache level) is no parabola there."""
+    scales = 4.0 ** np.linspace(-1.0, 1.0, 7)
+    times = np.array([2834.0, 2000.0, 1853.0, 1639.0, 3512.0, 4317.0, 6492.0])
+    fit = fit_minimum(scales, times, mads=np.full(7, 10.0))
+    assert not fit["fitted"]
+    assert fit["scale"] == scales[3] and fit["time"] == 1639.0
