@@ -160,6 +160,18 @@ def compiled_scene_stats(vertices, faces):
                            n_good=sums["n_good"], aspect_sample=sums["aspect_sample"], watertight=watertight)
 
 
+def triangle_box_overlap(corners, lo, hi) -> np.ndarray:
+    """:func:`models.nested.triangle_box_overlap` computed by the kernels' own test.
+
+    corners (P, 3, 3), lo and hi (P, 3): pair p tests triangle ``corners[p]`` against the
+    closed box ``[lo[p], hi[p]]``; returns (P,) bool.  The grid build uses the same test,
+    so counts planned with it describe the grid the kernels build.
+    """
+    c = np.ascontiguousarray(corners, dtype=np.float64).reshape(-1, 9)
+    return _kernels.triangle_box_overlap_many(c, np.ascontiguousarray(lo, dtype=np.float64),
+                                              np.ascontiguousarray(hi, dtype=np.float64))
+
+
 class Scene:
     """A triangle mesh ready for gridding.
 

@@ -50,7 +50,7 @@ from models.portable import paper_k, paper_level_cells
 from models.stats import scene_class, triangle_geometry
 from models.uncertainty import posterior_optimum, summarise
 
-from ._grid import Grid, Scene
+from ._grid import Grid, Scene, triangle_box_overlap
 from ._io import UserError
 
 FIDELITIES = ("paper", "analytic", "simulated")
@@ -397,7 +397,8 @@ def _nested_plan(scene, stats, k: Constants, L):
         if i not in memo:
             try:
                 c = nested_counts(geom, stats.box_lo, stats.box_hi, _scaled(centre, scales[i]), L, k.ratio,
-                                  overlap=overlap, corners=corners, leaves="analytic")
+                                  overlap=overlap, corners=corners, leaves="analytic",
+                                  overlap_test=triangle_box_overlap)
                 memo[i] = (k.cost(c.steps, c.tests, c.subgrids), c)
             except TooManyPairs:
                 memo[i] = (math.inf, None)
@@ -591,7 +592,7 @@ def _kernel_subgrid_resolutions(scene, stats, counts, overlap):
     enumerates them (bounding-box candidates, then the separating-axis test for exact
     overlap); their order is the flat cell index, the order of the plan's subgrids.
     """
-    from models.nested import _enumerate_pairs, triangle_box_overlap  # the same enumeration: rows line up
+    from models.nested import _enumerate_pairs  # the same enumeration: rows line up
 
     geom, corners = _geometry(scene)
     top = np.asarray(counts.top_resolution, dtype=np.int64)
