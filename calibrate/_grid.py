@@ -244,6 +244,9 @@ class Scene:
         try:
             with _quiet_trimesh():
                 loaded = trimesh.load(str(p), force="mesh", process=False)
+        except ImportError as exc:  # a format needing an optional package (pycollada, networkx, ...)
+            raise ValueError(f"{p}: cannot read it as a mesh: trimesh needs an optional package for it "
+                             f"({_reader_detail(exc)})") from None
         except Exception as exc:  # trimesh raises many types for a corrupt file
             raise ValueError(f"{p}: cannot read it as a mesh; is it corrupt or truncated? "
                              f"({_reader_detail(exc)})") from None
@@ -318,8 +321,6 @@ def _check_binary_stl_length(p: Path) -> None:
 
 def _reader_detail(exc: BaseException) -> str:
     """A reader's exception as a short phrase for a one-line message."""
-    if isinstance(exc, ImportError):  # trimesh reaching for an optional decoder on garbage
-        return "not in a format trimesh can decode"
     text = " ".join(str(exc).split()) or type(exc).__name__
     if len(text) > MAX_DETAIL_CHARS:
         text = text[:MAX_DETAIL_CHARS - 3].rstrip() + "..."
