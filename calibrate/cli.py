@@ -305,10 +305,14 @@ def build_parser() -> argparse.ArgumentParser:
     sp.set_defaults(func=cmd_scenes)
 
     from . import export as _export
+    from . import paper as _paper
     from . import predict as _predict
+    from . import render as _render
 
     _predict.add_parser(sub)
     _export.add_parser(sub)
+    _render.add_parser(sub)
+    _paper.add_parser(sub)
     return p
 
 

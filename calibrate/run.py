@@ -296,7 +296,8 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
                     rays_per_batch=suites.RAYS_PER_BATCH, min_value_ns=MIN_VALUE_NS)
         from ._kernels import CFLAGS
 
-        cal = calfile.from_fit(result, fingerprint=fingerprint(extra={"kernel_build": CFLAGS}),
+        cal = calfile.from_fit(result, fingerprint=fingerprint(
+            extra={"kernel_build": CFLAGS, "timing_clock": suites.TIMING_CLOCK}),
                                measurements=recs, isolated=isolated, meta=meta)
         calfile.save(out, cal)
         if part.exists():
