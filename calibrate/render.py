@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ._grid import Grid, Scene
-from ._io import UserError, atomic_write_bytes
+from ._io import UserError, atomic_write_bytes, check_writable
 
 HEATMAPS = ("steps", "tests")
 DEFAULT_SCENE = "sphere"
@@ -233,6 +233,7 @@ def _check_out(out: Path) -> None:
         raise UserError(f"cannot write {out}: it is a directory; give a file name")
     if out.suffix.lower() != ".png":
         raise UserError(f"cannot write {out}: the image is a PNG; give a file name ending in .png")
+    check_writable(out)  # a read-only file or directory is reported before rendering
 
 
 def summary(result: dict, out=None) -> dict:

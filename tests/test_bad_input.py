@@ -11,8 +11,9 @@ directory); afterwards every file there is byte-identical, with the same
 permissions, and nothing was added (no partial output, no temporary file).
 
 Errors must come before any expensive work: while a row runs, building the
-measuring suites, fitting and drawing plots raise :class:`ReachedExpensiveWork`,
-so a destination checked only after measuring fails its row.
+measuring suites, fitting, drawing plots and tracing rays in the kernels raise
+:class:`ReachedExpensiveWork`, so a destination checked only after measuring
+(or rendering) fails its row.
 
 ``python tests/test_bad_input.py --write-docs`` writes docs/bad-input.md from
 this table with the messages the rows actually produce;
@@ -42,6 +43,7 @@ if str(REPO) not in sys.path:  # run as a script (--write-docs) from anywhere
     sys.path.insert(0, str(REPO))
 
 from calibrate import Grid, Scene, calfile  # noqa: E402
+from calibrate import _grid as _grid_module  # noqa: E402
 from calibrate.cli import build_parser, main  # noqa: E402
 
 DOCS = REPO / "docs" / "bad-input.md"
@@ -131,13 +133,14 @@ def fixture_files() -> dict[str, bytes]:
         "out.json": EXISTING,
         "locked.json": EXISTING,  # made read-only
         "locked.h": EXISTING,  # made read-only
+        "locked.png": EXISTING,  # made read-only
         "fig-residuals.png": EXISTING,  # made read-only: the second of show --plot's two files
         "ro/keep.txt": EXISTING,  # ro/ is made read-only
         "adir/keep.txt": EXISTING,
     }
 
 
-READ_ONLY_FILES = ("locked.json", "locked.h", "fig-residuals.png")
+READ_ONLY_FILES = ("locked.json", "locked.h", "locked.png", "fig-residuals.png")
 READ_ONLY_DIR = "ro"
 
 
@@ -218,9 +221,9 @@ def _rays(n=2):
     return np.zeros((n, 3)), np.tile([1.0, 1.0, 1.0], (n, 1))
 
 
-MESH, SCENE, ARRAYS, GRID, OPTIONS, CALFILE, OUTPUT = (
+MESH, SCENE, ARRAYS, GRID, OPTIONS, CALFILE, OUTPUT, RENDER = (
     "Mesh files", "Scenes", "Meshes and rays as arrays (API)", "Grids (API)", "Options: budgets, ratios, seeds, "
-    "choices", "Calibration files", "Output files")
+    "choices", "Calibration files", "Output files", "Rendering and the talk's claims")
 
 CASES: list[Case] = [
     # -- mesh files ----------------------------------------------------------------------------
@@ -348,6 +351,25 @@ CASES: list[Case] = [
         "directory nowhere does not exist"),
     cli(OUTPUT, "output's directory is a file", "export --ratio 1 --header out.json/grid.h",
         "out.json is not a directory"),
+    cli(OUTPUT, "output is a directory", "render --ratio 1 --out adir", "adir: it is a directory"),
+    cli(OUTPUT, "output file is read-only", "render --ratio 1 --out locked.png", "the file is read-only"),
+    cli(OUTPUT, "output directory is read-only", "render --ratio 1 --out ro/image.png",
+        "directory ro is not writable"),
+    cli(OUTPUT, "image name without .png", "render --ratio 1 --out image.jpg", "the image is a PNG"),
+    # -- the verbs of rendering and of the talk's claims ----------------------------------------
+    cli(RENDER, "NaN vertex in a file", "render nan.obj --ratio 1", "NaN or Inf coordinates"),
+    cli(RENDER, "zero resolution", "render --resolution 0 4 4", "every axis needs at least 1 cell"),
+    cli(RENDER, "absurd resolution", "render --resolution 100000 100000 100000",
+        "overflows the grid's 32-bit cell offsets"),
+    cli(RENDER, "zero image width", "render --ratio 1 --width 0", "must be a whole number of pixels"),
+    cli(RENDER, "absurd image height", "render --ratio 1 --height 100000", "must be a whole number of pixels"),
+    cli(RENDER, "zero view direction", "render --ratio 1 --view 0 0 0", "finite non-zero 3-vector"),
+    cli(RENDER, "NaN view direction", "render --ratio 1 --view nan 0 1", "finite non-zero 3-vector"),
+    cli(RENDER, "calibration from a future schema", "render --calibration future.json",
+        "is newer than this gridcal understands"),
+    cli(RENDER, "zero ratio", "paper --ratio 0", "must be a positive number"),
+    cli(RENDER, "truncated calibration", "paper --calibration truncated.json", "the file may be truncated or corrupted"),
+    cli(RENDER, "no calibration at all", "paper", "no calibration: ./calibration.json does not exist"),
 ]
 
 
@@ -391,6 +413,8 @@ def row_environment(workdir: Path):
             stack.enter_context(mock.patch("calibrate.fit.fit", _refuse("fitting")))
             stack.enter_context(mock.patch("calibrate.plots.corner", _refuse("plotting")))
             stack.enter_context(mock.patch("calibrate.plots.residuals", _refuse("plotting")))
+            for name in ("intersect", "count", "bench"):  # tracing rays (after the API's own checks)
+                stack.enter_context(mock.patch.object(_grid_module._kernels, name, _refuse("tracing")))
             if IS_ROOT:
                 stack.enter_context(mock.patch.object(tempfile, "mkstemp", mkstemp))
             yield
