@@ -246,7 +246,11 @@ def isotropic(
     directions[rows, (axis + 2) % 3] = local[:, 1]
     directions = _normalise(directions)
     margin = margin_fraction * _diagonal(lo, hi)
-    origins = points - margin * directions
+    with np.errstate(over="ignore", invalid="ignore"):
+        origins = points - margin * directions
+    if not np.all(np.isfinite(origins)):
+        raise ValueError(f"box is too close to float64's limit for rays from outside it: lo={lo.tolist()}, "
+                         f"hi={hi.tolist()}")
     return np.ascontiguousarray(origins), np.ascontiguousarray(directions)
 
 
