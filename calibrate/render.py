@@ -295,6 +295,10 @@ def cmd_render(args) -> int:
     _check_out(out)
     width = _check_size(args.width, "--width")
     height = _check_size(args.height, "--height")
+    if args.view is not None:  # before loading the scene and planning its grid
+        v = np.asarray(args.view, dtype=np.float64)
+        if not (np.all(np.isfinite(v)) and np.any(v != 0)):
+            raise UserError(f"--view must be a finite non-zero 3-vector DX DY DZ, got {' '.join(map(str, args.view))}")
     scene = Scene.load(args.mesh)
     src = {} if args.resolution is not None else _constants_from_args(args)
     if not args.quiet and not args.json and sys.stderr.isatty():
