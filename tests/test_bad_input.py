@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import io
 import json
 import math
@@ -99,6 +100,7 @@ def _calibration() -> dict:
                                  diagnostics=dict(converged=True), measurements=meas, meta={}))
 
 
+@functools.lru_cache(maxsize=1)
 def fixture_files() -> dict[str, bytes]:
     good = json.dumps(_calibration(), indent=1).encode()
     future = _calibration()
