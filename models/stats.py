@@ -108,7 +108,10 @@ def grid_box(lo, hi) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError("box corners contain NaN or Inf")
     if np.any(hi < lo):
         raise ValueError(f"box has hi < lo: lo={lo}, hi={hi}")
-    ext = hi - lo
+    with np.errstate(over="ignore"):
+        ext = hi - lo
+    if not np.all(np.isfinite(ext)):
+        raise ValueError(f"box is too wide for float64: its extent overflows (lo={lo.tolist()}, hi={hi.tolist()})")
     emax = float(ext.max())
     if emax > 0.0:
         width = MIN_EXTENT_FRACTION * emax

@@ -730,3 +730,16 @@ def test_brute_force_rejects_a_non_scene(not_a_scene):
 def test_brute_force_rejects_unknown_intersector(scene):
     with pytest.raises(ValueError, match=r"unknown intersector 'fast'"):
         brute_force(scene, O3, D3, "fast")
+
+
+def test_scene_and_kernel_refuse_a_box_whose_extent_overflows_on_every_axis():
+    """+-1.7e308 on all three axes: no axis is thin, so nothing widened the box and noticed the
+    overflow; the kernel then divided by an infinite extent and crashed (a fuzzing find)."""
+    from calibrate import _kernels
+
+    v = np.array([[-1.7e308] * 3, [1.7e308] * 3, [0.0, 1.7e308, -1.7e308]])
+    f = np.array([[0, 1, 2]])
+    with pytest.raises(ValueError, match=r"box is too wide for float64: its extent overflows"):
+        Scene(v, f)
+    with pytest.raises(ValueError, match=r"too wide for double precision"):
+        _kernels.build(v, f, (1, 1, 6))

@@ -275,6 +275,9 @@ CASES: list[Case] = [
         lambda d: Scene(TETRA_V, [[0, 1, 2, 3]]), "faces must be triangles"),
     api(ARRAYS, "vertices of the wrong shape", "Scene(np.zeros((4, 2)), faces)",
         lambda d: Scene(np.zeros((4, 2)), TETRA_F), "vertices must have shape (V, 3)"),
+    api(ARRAYS, "coordinates wider apart than float64 holds", "Scene(vertices from -1.7e308 to 1.7e308 on every axis, "
+        "faces)", lambda d: Scene([[-1.7e308] * 3, [1.7e308] * 3, [0.0, 1.7e308, -1.7e308]], [[0, 1, 2]]),
+        "box is too wide for float64"),
     api(ARRAYS, "ray origin NaN", "grid.intersect(origins with a NaN, directions)",
         lambda d: _grid().intersect(np.array([[math.nan, 0, 0]]), np.array([[1.0, 0, 0]])), "contain NaN or Inf"),
     api(ARRAYS, "zero ray direction", "grid.count(origins, [[0, 0, 0]])",
