@@ -19,7 +19,12 @@ a process crash is a finding.  Run for a bounded time:
     python tests/fuzz/fuzz_mesh.py NEW_DIR tests/fuzz/corpus -max_total_time=15
 
 (libFuzzer adds inputs it finds to the first directory: give it a scratch one.)
-tests/test_fuzz.py does that in CI.
+tests/test_fuzz.py does that in CI.  The seeds in tests/fuzz/corpus are a
+tetrahedron in each format (and a byte string for the arrays), each behind its
+mode and parameter bytes; ``regression_*`` are inputs that fuzzing found to fail
+before their fixes (a NaN face probability for a box of 1e200 in
+:func:`calibrate.rays.isotropic`, rays beyond float64's range, and a segfault in
+the kernel's build for a box whose extent overflowed).
 """
 
 from __future__ import annotations
