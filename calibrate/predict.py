@@ -852,10 +852,16 @@ def cmd_predict(args) -> int:
     import json
     import sys
 
+    from .cli import _stderr_is_tty
+
     src = constants_from_args(args)
     scene = Scene.load(args.mesh)
+    try:  # a scene the statistics reject fails here, naming the file, before any progress line
+        scene.stats  # noqa: B018
+    except ValueError as exc:
+        raise UserError(f"{scene.name}: {exc}") from None
     slow = args.fidelity == "simulated" or (args.levels != "1" and args.fidelity == "analytic")
-    if slow and not args.quiet and not args.json:
+    if slow and not args.quiet and not args.json and _stderr_is_tty():
         print(f"predicting ({args.fidelity}) for {scene.name} ({scene.n_triangles:,} triangles) ...",
               file=sys.stderr)
     result = predict(scene, fidelity=args.fidelity, levels=args.levels, rays=args.rays, mailbox=args.mailbox, **src)

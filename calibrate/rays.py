@@ -106,9 +106,32 @@ def _check_box(lo, hi) -> tuple[np.ndarray, np.ndarray]:
     return lo, hi
 
 
+def _extent(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """hi - lo, (3,); a box wider than float64 can hold raises ValueError."""
+    with np.errstate(over="ignore"):
+        d = hi - lo
+    if not np.all(np.isfinite(d)):
+        raise ValueError(f"box is too wide for float64: lo={lo.tolist()}, hi={hi.tolist()}")
+    return d
+
+
+def _diagonal(lo: np.ndarray, hi: np.ndarray) -> float:
+    """|hi - lo| without overflow or underflow of the squares (any finite box)."""
+    d = np.abs(_extent(lo, hi))
+    scale = float(d.max())
+    return scale * float(np.linalg.norm(d / scale)) if scale > 0 else 0.0
+
+
 def _face_areas(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Area of one box face perpendicular to each axis, (3,)."""
-    d = hi - lo
+    """Area of one box face perpendicular to each axis, (3,), in units of the largest extent squared.
+
+    Relative, so the areas (and the face probabilities made from them) neither
+    overflow for boxes of 1e200 nor underflow for boxes of 1e-200.
+    """
+    d = _extent(lo, hi)
+    scale = float(d.max())
+    if scale > 0:
+        d = d / scale
     return np.array([d[1] * d[2], d[0] * d[2], d[0] * d[1]])
 
 
@@ -228,8 +251,12 @@ def isotropic(
     directions[rows, (axis + 1) % 3] = local[:, 0]
     directions[rows, (axis + 2) % 3] = local[:, 1]
     directions = _normalise(directions)
-    margin = margin_fraction * np.linalg.norm(hi - lo)
-    origins = points - margin * directions
+    margin = margin_fraction * _diagonal(lo, hi)
+    with np.errstate(over="ignore", invalid="ignore"):
+        origins = points - margin * directions
+    if not np.all(np.isfinite(origins)):
+        raise ValueError(f"box is too close to float64's limit for rays from outside it: lo={lo.tolist()}, "
+                         f"hi={hi.tolist()}")
     return np.ascontiguousarray(origins), np.ascontiguousarray(directions)
 
 
@@ -242,7 +269,7 @@ def _camera_frame(lo, hi, view_direction, fov_deg):
     if not (np.isfinite(fov_deg) and 0 < fov_deg < 180):
         raise ValueError(f"fov_deg must be in (0, 180), got {fov_deg}")
     fwd = fwd / np.linalg.norm(fwd)
-    radius = 0.5 * np.linalg.norm(hi - lo)
+    radius = 0.5 * _diagonal(lo, hi)
     if not radius > 0:
         raise ValueError(f"box is a single point (lo = hi = {lo.tolist()}); a camera cannot frame it")
     half = np.radians(fov_deg) / 2.0
@@ -380,7 +407,7 @@ def surface(vertices, faces, n: int, seed, side: str = "random") -> Rays:
     t, bt_ = _orthonormal_basis(normal)
     directions = _normalise(local[:, 0:1] * t + local[:, 1:2] * bt_ + local[:, 2:3] * normal)
     lo, hi = v.min(axis=0), v.max(axis=0)
-    offset = SURFACE_OFFSET_FRACTION_OF_DIAGONAL * np.linalg.norm(hi - lo)
+    offset = SURFACE_OFFSET_FRACTION_OF_DIAGONAL * _diagonal(lo, hi)
     origins = points + offset * normal
     return np.ascontiguousarray(origins), np.ascontiguousarray(directions)
 

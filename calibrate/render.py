@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ._grid import Grid, Scene
-from ._io import UserError, atomic_write_bytes
+from ._io import UserError, atomic_write_bytes, check_writable
 
 HEATMAPS = ("steps", "tests")
 DEFAULT_SCENE = "sphere"
@@ -233,6 +233,7 @@ def _check_out(out: Path) -> None:
         raise UserError(f"cannot write {out}: it is a directory; give a file name")
     if out.suffix.lower() != ".png":
         raise UserError(f"cannot write {out}: the image is a PNG; give a file name ending in .png")
+    check_writable(out)  # a read-only file or directory is reported before rendering
 
 
 def summary(result: dict, out=None) -> dict:
@@ -294,6 +295,10 @@ def cmd_render(args) -> int:
     _check_out(out)
     width = _check_size(args.width, "--width")
     height = _check_size(args.height, "--height")
+    if args.view is not None:  # before loading the scene and planning its grid
+        v = np.asarray(args.view, dtype=np.float64)
+        if not (np.all(np.isfinite(v)) and np.any(v != 0)):
+            raise UserError(f"--view must be a finite non-zero 3-vector DX DY DZ, got {' '.join(map(str, args.view))}")
     scene = Scene.load(args.mesh)
     src = {} if args.resolution is not None else _constants_from_args(args)
     if not args.quiet and not args.json and sys.stderr.isatty():

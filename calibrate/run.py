@@ -26,7 +26,7 @@ import numpy as np
 
 from . import calfile, suites
 from . import fit as _fit
-from ._io import UserError, atomic_write_text
+from ._io import UserError, atomic_write_text, check_writable
 from ._grid import intersector_code
 from .host import fingerprint
 from .protocol import Measurement, MeasurementInterrupted, measure, pin_to_one_core
@@ -46,6 +46,9 @@ WARMUPS = 1
 HOLDOUT_FRACTION = 0.2
 #: Share of the budget kept for fitting after the last stage.
 FIT_RESERVE_S = 6.0
+#: Shortest budget accepted, seconds: the fitting reserve plus a few seconds of measuring
+#: (the first stage times every configuration FIRST_ROUNDS times).
+MIN_BUDGET_S = FIT_RESERVE_S + 4.0
 #: Constants whose in-context fit borrows a prior from the isolating suites: set-up
 #: and subgrid entry are a few per cent of a real batch, too little for the batches
 #: alone to pin them; the isolating suites measure them directly.
@@ -234,13 +237,23 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
     """
     if not (isinstance(budget_s, (int, float)) and math.isfinite(budget_s) and budget_s > 0):
         raise UserError(f"--budget must be a positive number of seconds, got {budget_s!r}")
+    if budget_s < MIN_BUDGET_S:
+        raise UserError(f"--budget {budget_s:g} s is too short: a run needs at least {MIN_BUDGET_S:g} s "
+                        f"({FIT_RESERVE_S:g} s of it for fitting)")
     if target_rel_width is not None and not (math.isfinite(target_rel_width) and target_rel_width > 0):
         raise UserError(f"--target-rel-width must be a positive number, got {target_rel_width!r}")
+    if not (isinstance(seed, int) and 0 <= seed < 2**32):
+        raise UserError(f"--seed must be a whole number from 0 to 2^32 - 1, got {seed!r}")
     intersector_code(intersector)  # validates the name
+    # Every input and destination is checked before anything is built or measured.
+    out = check_writable(out)
+    part = partial_path(out)
+    if resume and not part.exists():
+        raise UserError(f"{part}: no interrupted run to resume (run without --resume to start one)")
+    check_writable(part)
     status = status or (lambda text: None)
     t_start = time.monotonic()
     deadline = t_start + budget_s
-    part = partial_path(out)
     warnings: list = []
 
     with pin_to_one_core() as pin:

@@ -548,6 +548,14 @@ gc_status gc_grid_build(const gc_mesh *mesh, const gc_build_params *params, gc_g
             return st;
         }
     }
+    /* Cell sizes and cell indices divide by the extent: an extent that overflows to
+     * inf would turn them into NaN and the cell index into anything. */
+    for (int i = 0; i < 3; ++i) {
+        if (!isfinite(hi[i] - lo[i])) {
+            gc_set_error(err, "the grid box is too wide for double precision: its extent on axis %d overflows", i);
+            return GC_ERR_ARGUMENT;
+        }
+    }
 
     builder b;
     memset(&b, 0, sizeof b);

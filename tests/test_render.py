@@ -103,7 +103,7 @@ def test_recommended_grid_is_predicts(tmp_path, cylinder, capsys):
     (["--resolution", "0", "3", "3"], "at least 1 cell"),
     (["--scene", "nosuchscene"], "neither a mesh file nor a built-in scene"),
     (["--heatmap", "cells"], "invalid choice"),
-    (["--view", "0", "0", "0"], "view_direction"),
+    (["--view", "0", "0", "0"], "--view must be a finite non-zero"),
 ])
 def test_bad_input_is_one_line_and_no_file(tmp_path, capsys, args, needle):
     args = [a.replace("{tmp}", str(tmp_path)) for a in args]

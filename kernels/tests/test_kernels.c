@@ -368,6 +368,27 @@ static void test_refusals(void)
           "NaN vertex not refused: %s", err);
     m.v[5] = 0.5;
 
+    /* vertices near +-DBL_MAX: the box's extent overflows to inf (found by fuzzing: a segfault) */
+    {
+        const double v0 = m.v[0], v3 = m.v[3];
+        const int64_t keep[3] = {m.f[0], m.f[1], m.f[2]};
+        m.v[0] = -1.7e308, m.v[3] = 1.7e308;
+        m.f[0] = 0, m.f[1] = 1, m.f[2] = 1;
+        err[0] = 0;
+        CHECK(gc_grid_build(&mesh, &p, &g, err) == GC_ERR_ARGUMENT && g == NULL && strstr(err, "too wide"),
+              "a box whose extent overflows not refused: %s", err);
+        p.has_box = 1;
+        for (int i = 0; i < 3; ++i) {
+            p.box_lo[i] = -1.7e308, p.box_hi[i] = 1.7e308;
+        }
+        err[0] = 0;
+        CHECK(gc_grid_build(&mesh, &p, &g, err) == GC_ERR_ARGUMENT && g == NULL && strstr(err, "too wide"),
+              "a given box whose extent overflows not refused: %s", err);
+        p = gc_build_params_default();
+        m.v[0] = v0, m.v[3] = v3;
+        m.f[0] = keep[0], m.f[1] = keep[1], m.f[2] = keep[2];
+    }
+
     gc_mesh empty = {m.v, m.nv, m.f, 0};
     CHECK(gc_grid_build(&empty, &p, &g, err) == GC_ERR_ARGUMENT, "empty mesh without a box accepted");
     p.has_box = 1;
