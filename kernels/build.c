@@ -108,7 +108,7 @@ static void cell_box(const gc_node *nd, int32_t x, int32_t y, int32_t z, double 
         double a = nd->lo[i] + (double)c[i] * nd->cell[i];
         double b = (c[i] + 1 == nd->n[i]) ? nd->hi[i] : nd->lo[i] + (double)(c[i] + 1) * nd->cell[i];
         double w = GC_CELL_WIDEN_FRACTION * nd->cell[i] +
-                   GC_CELL_WIDEN_ULPS * DBL_EPSILON * fmax(fabs(a), fabs(b));
+                   GC_CELL_WIDEN_ULPS * DBL_EPSILON * GC_MAX(fabs(a), fabs(b));
         lo[i] = a - w;
         hi[i] = b + w;
     }
@@ -198,20 +198,24 @@ static gc_status collect_pairs(builder *b, const gc_node *nd, const uint32_t *pr
         const gc_tri *t = &b->g->tris[prims[k]];
         int32_t r0[3], r1[3];
         for (int i = 0; i < 3; ++i) {
-            double a = fmin(t->v0[i], fmin(t->v1[i], t->v2[i]));
-            double c = fmax(t->v0[i], fmax(t->v1[i], t->v2[i]));
+            double a = GC_MIN(t->v0[i], GC_MIN(t->v1[i], t->v2[i]));
+            double c = GC_MAX(t->v0[i], GC_MAX(t->v1[i], t->v2[i]));
             double w = GC_CELL_WIDEN_FRACTION * nd->cell[i] +
-                       GC_CELL_WIDEN_ULPS * DBL_EPSILON * fmax(fabs(a), fabs(c));
+                       GC_CELL_WIDEN_ULPS * DBL_EPSILON * GC_MAX(fabs(a), fabs(c));
             axis_range(nd, i, a - w, c + w, &r0[i], &r1[i]);
         }
         const int single = r0[0] == r1[0] && r0[1] == r1[1] && r0[2] == r1[2];
+        gc_tri_box_prep prep;
+        if (exact && !single) {
+            gc_tri_box_prepare(&prep, t->v0, t->v1, t->v2);
+        }
         for (int32_t z = r0[2]; z <= r1[2]; ++z) {
             for (int32_t y = r0[1]; y <= r1[1]; ++y) {
                 for (int32_t x = r0[0]; x <= r1[0]; ++x) {
                     if (exact && !single) {
                         double clo[3], chi[3];
                         cell_box(nd, x, y, z, clo, chi);
-                        if (!gc_triangle_box_overlap(t->v0, t->v1, t->v2, clo, chi)) {
+                        if (!gc_tri_box_prepared_overlap(&prep, clo, chi)) {
                             continue;
                         }
                     }

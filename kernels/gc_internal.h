@@ -31,9 +31,27 @@
 #define GC_PREFETCH(p) ((void)(p))
 #endif
 
+/* Minimum and maximum of finite values, inlined (fmin/fmax are library calls). */
+#define GC_MIN(a, b) ((a) < (b) ? (a) : (b))
+#define GC_MAX(a, b) ((a) > (b) ? (a) : (b))
+
 typedef struct {
     double v0[3], v1[3], v2[3];
 } gc_tri; /* 72 bytes */
+
+/* One triangle prepared for exact overlap tests against many boxes (overlap.c). */
+#define GC_TRI_BOX_AXES 10 /* the normal and the nine edge axes; the box axes are the bounds */
+typedef struct {
+    double o[3];                       /* the first vertex: the local origin */
+    double bmin[3], bmax[3];           /* the triangle's bounds */
+    double axis[GC_TRI_BOX_AXES][3];
+    double axis_abs[GC_TRI_BOX_AXES][3];
+    double pmin[GC_TRI_BOX_AXES], pmax[GC_TRI_BOX_AXES]; /* projections of the local vertices */
+} gc_tri_box_prep;
+
+void gc_tri_box_prepare(gc_tri_box_prep *p, const double v0[3], const double v1[3], const double v2[3]);
+/* The separating-axis test of gc_triangle_box_overlap for a prepared triangle. */
+int gc_tri_box_prepared_overlap(const gc_tri_box_prep *p, const double lo[3], const double hi[3]);
 
 typedef struct {
     uint32_t begin; /* first reference, or the subgrid's node index */

@@ -125,8 +125,8 @@ gc_status gc_mesh_box(const gc_mesh *mesh, double lo[3], double hi[3], char *err
         for (int k = 0; k < 3; ++k) {
             const double *v = mesh->vertices + 3 * mesh->faces[3 * f + k];
             for (int i = 0; i < 3; ++i) {
-                lo[i] = fmin(lo[i], v[i]);
-                hi[i] = fmax(hi[i], v[i]);
+                lo[i] = GC_MIN(lo[i], v[i]);
+                hi[i] = GC_MAX(hi[i], v[i]);
             }
         }
     }
