@@ -12,6 +12,7 @@
  * a grid that would pass the memory limit is refused with a message.
  */
 #include "gc_internal.h"
+#include "overlap.h"
 
 #include <float.h>
 #include <stdio.h>
@@ -182,18 +183,76 @@ static void scratch_free(builder *b, void *p, size_t bytes)
     b->scratch -= bytes;
 }
 
+/* Double the pair scratch (the rare path of collect_pairs). */
+static gc_status grow_pairs(builder *b, pair **pairs, int64_t *cap)
+{
+    if ((uint64_t)*cap >= GC_MAX_REFS) {
+        gc_set_error(b->err,
+                     "more than %llu triangle references in one grid level: "
+                     "the resolution is too fine for 32-bit reference offsets",
+                     (unsigned long long)GC_MAX_REFS);
+        return GC_ERR_OVERFLOW;
+    }
+    int64_t cap2 = *cap * 2;
+    size_t grow = (size_t)(cap2 - *cap) * sizeof(pair);
+    gc_status st = check_memory(b, grow, "the triangle references");
+    if (st != GC_OK) {
+        return st;
+    }
+    pair *p2 = realloc(*pairs, (size_t)cap2 * sizeof(pair));
+    if (!p2) {
+        gc_set_error(b->err, "out of memory recording triangle references");
+        return GC_ERR_NO_MEMORY;
+    }
+    b->scratch += grow;
+    *pairs = p2;
+    *cap = cap2;
+    return GC_OK;
+}
+
 /* Record every (cell, triangle) pair of node `nd`.  *pairs_out is scratch of
- * *cap_out entries (release with scratch_free). */
+ * *cap_out entries (release with scratch_free).  The widened cell bounds, centres
+ * and half sizes along each axis are tabulated once per node (cell_box). */
 static gc_status collect_pairs(builder *b, const gc_node *nd, const uint32_t *prims, int64_t n_prims,
                                pair **pairs_out, int64_t *n_out, int64_t *cap_out)
 {
     int64_t n = 0, cap = n_prims > 0 ? n_prims : 1;
     gc_status st;
-    pair *pairs = scratch_alloc(b, (size_t)cap * sizeof(pair), "the triangle references", &st);
-    if (!pairs) {
+    const int exact = b->p->insertion == GC_INSERT_EXACT;
+    const int64_t n_axis = (int64_t)nd->n[0] + nd->n[1] + nd->n[2];
+    const size_t tab_bytes = exact ? (size_t)n_axis * 4 * sizeof(double) : 0;
+    double *tab = exact ? scratch_alloc(b, tab_bytes, "the cell bounds", &st) : NULL;
+    if (exact && !tab) {
         return st;
     }
-    const int exact = b->p->insertion == GC_INSERT_EXACT;
+    pair *pairs = scratch_alloc(b, (size_t)cap * sizeof(pair), "the triangle references", &st);
+    if (!pairs) {
+        if (tab) {
+            scratch_free(b, tab, tab_bytes);
+        }
+        return st;
+    }
+    /* tab: per axis i, from base[i], the cells' widened lo, hi, centre and half size */
+    const double *clo[3], *chi[3], *cmid[3], *chalf[3];
+    if (exact) {
+        int64_t base = 0;
+        for (int i = 0; i < 3; ++i) {
+            double *lo = tab + base, *hi = lo + n_axis, *mid = hi + n_axis, *half = mid + n_axis;
+            for (int32_t c = 0; c < nd->n[i]; ++c) {
+                int32_t xyz[3] = {0, 0, 0};
+                double l3[3], h3[3];
+                xyz[i] = c;
+                cell_box(nd, xyz[0], xyz[1], xyz[2], l3, h3);
+                lo[c] = l3[i];
+                hi[c] = h3[i];
+                mid[c] = 0.5 * (l3[i] + h3[i]);
+                half[c] = 0.5 * (h3[i] - l3[i]);
+            }
+            clo[i] = lo, chi[i] = hi, cmid[i] = mid, chalf[i] = half;
+            base += nd->n[i];
+        }
+    }
+    const int64_t nx = nd->n[0], nxy = (int64_t)nd->n[0] * nd->n[1];
     for (int64_t k = 0; k < n_prims; ++k) {
         const gc_tri *t = &b->g->tris[prims[k]];
         int32_t r0[3], r1[3];
@@ -204,58 +263,58 @@ static gc_status collect_pairs(builder *b, const gc_node *nd, const uint32_t *pr
                        GC_CELL_WIDEN_ULPS * DBL_EPSILON * GC_MAX(fabs(a), fabs(c));
             axis_range(nd, i, a - w, c + w, &r0[i], &r1[i]);
         }
-        const int single = r0[0] == r1[0] && r0[1] == r1[1] && r0[2] == r1[2];
-        gc_tri_box_prep prep;
-        if (exact && !single) {
-            gc_tri_box_prepare(&prep, t->v0, t->v1, t->v2);
+        const int64_t span = (int64_t)(r1[0] - r0[0] + 1) * (r1[1] - r0[1] + 1) * (r1[2] - r0[2] + 1);
+        if (span == 1 || !exact) { /* every cell of the bounds */
+            while (n + span > cap) {
+                if ((st = grow_pairs(b, &pairs, &cap)) != GC_OK) {
+                    goto fail;
+                }
+            }
+            for (int32_t z = r0[2]; z <= r1[2]; ++z) {
+                for (int32_t y = r0[1]; y <= r1[1]; ++y) {
+                    for (int32_t x = r0[0]; x <= r1[0]; ++x) {
+                        pairs[n].cell = (uint32_t)(x + nx * y + nxy * z);
+                        pairs[n].prim = prims[k];
+                        ++n;
+                    }
+                }
+            }
+            continue;
         }
+        gc_tri_box_prep prep;
+        gc_tri_box_prepare(&prep, t->v0, t->v1, t->v2);
         for (int32_t z = r0[2]; z <= r1[2]; ++z) {
+            const double lo2 = clo[2][z], hi2 = chi[2][z], m2 = cmid[2][z], h2 = chalf[2][z];
             for (int32_t y = r0[1]; y <= r1[1]; ++y) {
+                const double lo1 = clo[1][y], hi1 = chi[1][y], m1 = cmid[1][y], h1 = chalf[1][y];
                 for (int32_t x = r0[0]; x <= r1[0]; ++x) {
-                    if (exact && !single) {
-                        double clo[3], chi[3];
-                        cell_box(nd, x, y, z, clo, chi);
-                        if (!gc_tri_box_prepared_overlap(&prep, clo, chi)) {
-                            continue;
-                        }
+                    if (!gc_tri_box_prepared_overlap(&prep, clo[0][x], lo1, lo2, chi[0][x], hi1, hi2,
+                                                     cmid[0][x], m1, m2, chalf[0][x], h1, h2)) {
+                        continue;
                     }
-                    if (n == cap) {
-                        if ((uint64_t)n >= GC_MAX_REFS) {
-                            gc_set_error(b->err,
-                                         "more than %llu triangle references in one grid level: "
-                                         "the resolution is too fine for 32-bit reference offsets",
-                                         (unsigned long long)GC_MAX_REFS);
-                            scratch_free(b, pairs, (size_t)cap * sizeof(pair));
-                            return GC_ERR_OVERFLOW;
-                        }
-                        int64_t cap2 = cap * 2;
-                        size_t grow = (size_t)(cap2 - cap) * sizeof(pair);
-                        st = check_memory(b, grow, "the triangle references");
-                        if (st != GC_OK) {
-                            scratch_free(b, pairs, (size_t)cap * sizeof(pair));
-                            return st;
-                        }
-                        pair *p2 = realloc(pairs, (size_t)cap2 * sizeof(pair));
-                        if (!p2) {
-                            gc_set_error(b->err, "out of memory recording triangle references");
-                            scratch_free(b, pairs, (size_t)cap * sizeof(pair));
-                            return GC_ERR_NO_MEMORY;
-                        }
-                        b->scratch += grow;
-                        pairs = p2;
-                        cap = cap2;
+                    if (n == cap && (st = grow_pairs(b, &pairs, &cap)) != GC_OK) {
+                        goto fail;
                     }
-                    pairs[n].cell = (uint32_t)(x + nd->n[0] * (y + nd->n[1] * z));
+                    pairs[n].cell = (uint32_t)(x + nx * y + nxy * z);
                     pairs[n].prim = prims[k];
                     ++n;
                 }
             }
         }
     }
+    if (tab) {
+        scratch_free(b, tab, tab_bytes);
+    }
     *pairs_out = pairs;
     *n_out = n;
     *cap_out = cap;
     return GC_OK;
+fail:
+    scratch_free(b, pairs, (size_t)cap * sizeof(pair));
+    if (tab) {
+        scratch_free(b, tab, tab_bytes);
+    }
+    return st;
 }
 
 /* Resolution of the subgrid for local cell `c` of node `nd` (depth `depth`), or
@@ -547,10 +606,7 @@ gc_status gc_grid_build(const gc_mesh *mesh, const gc_build_params *params, gc_g
             }
         }
     } else {
-        st = gc_mesh_box(mesh, lo, hi, err);
-        if (st != GC_OK) {
-            return st;
-        }
+        gc_mesh_box_checked(mesh, lo, hi); /* gc_check_mesh refused a mesh without faces */
     }
 
     builder b;

@@ -39,19 +39,6 @@ typedef struct {
     double v0[3], v1[3], v2[3];
 } gc_tri; /* 72 bytes */
 
-/* One triangle prepared for exact overlap tests against many boxes (overlap.c). */
-#define GC_TRI_BOX_AXES 10 /* the normal and the nine edge axes; the box axes are the bounds */
-typedef struct {
-    double o[3];                       /* the first vertex: the local origin */
-    double bmin[3], bmax[3];           /* the triangle's bounds */
-    double axis[GC_TRI_BOX_AXES][3];
-    double axis_abs[GC_TRI_BOX_AXES][3];
-    double pmin[GC_TRI_BOX_AXES], pmax[GC_TRI_BOX_AXES]; /* projections of the local vertices */
-} gc_tri_box_prep;
-
-void gc_tri_box_prepare(gc_tri_box_prep *p, const double v0[3], const double v1[3], const double v2[3]);
-/* The separating-axis test of gc_triangle_box_overlap for a prepared triangle. */
-int gc_tri_box_prepared_overlap(const gc_tri_box_prep *p, const double lo[3], const double hi[3]);
 
 typedef struct {
     uint32_t begin; /* first reference, or the subgrid's node index */
@@ -140,6 +127,9 @@ GC_INLINE void gc_ray_prepare(gc_ray *r, const double *o, const double *d)
 
 /* Validate a mesh: positive counts, indices in range, finite vertices used by faces. */
 gc_status gc_check_mesh(const gc_mesh *mesh, int allow_empty, char *err);
+
+/* gc_mesh_box for a mesh gc_check_mesh has accepted. */
+void gc_mesh_box_checked(const gc_mesh *mesh, double lo[3], double hi[3]);
 
 /* Validate rays: finite origins, finite non-zero directions. */
 gc_status gc_check_rays(int64_t n, const double *origins, const double *directions, char *err);
