@@ -72,28 +72,24 @@ GC_INLINE int gc_isect_moller_trumbore(const gc_ray *r, const gc_tri *tri, doubl
  * paper's fallback for an exactly zero edge function is not needed: zero is
  * handled consistently by the inclusive sign test.  Requires -ffp-contract=off
  * (a fused multiply-add would break the negation symmetry). */
-GC_INLINE int gc_isect_watertight(const gc_ray *r, const gc_tri *tri, double t_max,
-                                  double *t_out)
+/* The rest of the watertight test, for a ray whose line passes through the
+ * triangle (same sign of U, V, W): depth, determinant bound and t.  Kept out of
+ * line so the common rejection stays short; the sheared coordinates are formed
+ * again by the same operations, so they are the same values. */
+#if defined(__GNUC__)
+__attribute__((noinline))
+#endif
+static int gc_isect_watertight_finish(const gc_ray *r, const gc_tri *tri, double u, double v, double w,
+                                      double t_max, double *t_out)
 {
     const int kx = r->kx, ky = r->ky, kz = r->kz;
     const double sx = r->sx, sy = r->sy;
-    /* indexed loads: the permuted coordinates straight from the triangle */
     const double a_x = tri->v0[kx] - r->o[kx], a_y = tri->v0[ky] - r->o[ky], a_z = tri->v0[kz] - r->o[kz];
     const double b_x = tri->v1[kx] - r->o[kx], b_y = tri->v1[ky] - r->o[ky], b_z = tri->v1[kz] - r->o[kz];
     const double c_x = tri->v2[kx] - r->o[kx], c_y = tri->v2[ky] - r->o[ky], c_z = tri->v2[kz] - r->o[kz];
     const double ax = a_x - sx * a_z, ay = a_y - sy * a_z;
     const double bx = b_x - sx * b_z, by = b_y - sy * b_z;
     const double cx = c_x - sx * c_z, cy = c_y - sy * c_z;
-    const double u = cx * by - cy * bx;
-    const double v = ax * cy - ay * cx;
-    const double w = bx * ay - by * ax;
-    /* The paper's sign tests first: they reject most candidates, and the
-     * rounding bound below is only formed for a ray that passes them.  The
-     * verdict is the same conjunction in any order. */
-    const int inside = ((u >= 0.0) & (v >= 0.0) & (w >= 0.0)) | ((u <= 0.0) & (v <= 0.0) & (w <= 0.0));
-    if (!inside) {
-        return 0;
-    }
     const double det = u + v + w;
     const double az = r->sz * a_z, bz = r->sz * b_z, cz = r->sz * c_z;
     const double tt = u * az + v * bz + w * cz;
@@ -123,6 +119,28 @@ GC_INLINE int gc_isect_watertight(const gc_ray *r, const gc_tri *tri, double t_m
     }
     *t_out = t;
     return 1;
+}
+
+GC_INLINE int gc_isect_watertight(const gc_ray *r, const gc_tri *tri, double t_max, double *t_out)
+{
+    const int kx = r->kx, ky = r->ky, kz = r->kz;
+    const double sx = r->sx, sy = r->sy;
+    /* indexed loads: the permuted coordinates straight from the triangle */
+    const double a_z = tri->v0[kz] - r->o[kz], b_z = tri->v1[kz] - r->o[kz], c_z = tri->v2[kz] - r->o[kz];
+    const double ax = (tri->v0[kx] - r->o[kx]) - sx * a_z, ay = (tri->v0[ky] - r->o[ky]) - sy * a_z;
+    const double bx = (tri->v1[kx] - r->o[kx]) - sx * b_z, by = (tri->v1[ky] - r->o[ky]) - sy * b_z;
+    const double cx = (tri->v2[kx] - r->o[kx]) - sx * c_z, cy = (tri->v2[ky] - r->o[ky]) - sy * c_z;
+    const double u = cx * by - cy * bx;
+    const double v = ax * cy - ay * cx;
+    const double w = bx * ay - by * ax;
+    /* The paper's sign tests first: they reject most candidates, and what
+     * follows (gc_isect_watertight_finish) runs only for a ray that passes
+     * them.  The verdict is the same conjunction in any order. */
+    const int inside = ((u >= 0.0) & (v >= 0.0) & (w >= 0.0)) | ((u <= 0.0) & (v <= 0.0) & (w <= 0.0));
+    if (!inside) {
+        return 0;
+    }
+    return gc_isect_watertight_finish(r, tri, u, v, w, t_max, t_out);
 }
 
 #endif /* GC_TRIANGLE_H */

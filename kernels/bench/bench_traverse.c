@@ -268,7 +268,7 @@ int main(int argc, char **argv)
         }
         char res[32];
         snprintf(res, sizeof res, "%dx%dx%d", p.resolution[0], p.resolution[1], p.resolution[2]);
-        printf("%-20s %8lld %6d %14s %9lld %12.2f %10.2f %9.1f %10.3f  (checksum %.6e)\n", bc->name,
+        printf("%-20s %8lld %6d %14s %9lld %12.2f %10.2f %9.1f %10.3f  (checksum %.15e)\n", bc->name,
                (long long)m.nf, info.levels, res, (long long)info.n_refs, 1e3 * best_build,
                1e-6 * (double)info.n_refs / best_build, best / (double)n_rays, 1e3 * (double)n_rays / best,
                checksum);
