@@ -21,32 +21,23 @@
 /* Moller and Trumbore, "Fast, minimum storage ray-triangle intersection",
  * JGT 2(1) 1997.  Not watertight: rays through shared edges or vertices can
  * slip between the two triangles when rounding disagrees. */
-GC_INLINE int gc_isect_moller_trumbore(const gc_ray *r, const gc_tri *tri, double t_max,
-                                       double *t_out)
+/* The rest of the Moller-Trumbore test for a candidate inside the triangle's
+ * edges: depth, determinant bound and t.  Out of line, like the watertight
+ * test's; the values it forms again come from the same operations. */
+#if defined(__GNUC__)
+__attribute__((noinline))
+#endif
+static int gc_isect_moller_trumbore_finish(const gc_ray *r, const gc_tri *tri, double sgn, double adet,
+                                           double t_max, double *t_out)
 {
     const double *v0 = tri->v0, *v1 = tri->v1, *v2 = tri->v2;
     const double e1[3] = {v1[0] - v0[0], v1[1] - v0[1], v1[2] - v0[2]};
     const double e2[3] = {v2[0] - v0[0], v2[1] - v0[1], v2[2] - v0[2]};
-    const double p[3] = {r->d[1] * e2[2] - r->d[2] * e2[1], r->d[2] * e2[0] - r->d[0] * e2[2],
-                         r->d[0] * e2[1] - r->d[1] * e2[0]};
-    const double det = e1[0] * p[0] + e1[1] * p[1] + e1[2] * p[2];
     const double s[3] = {r->o[0] - v0[0], r->o[1] - v0[1], r->o[2] - v0[2]};
-    /* Barycentrics and t scaled by det, compared with det's sign folded in, so
-     * nothing divides before a hit.  The cheap range tests come first and reject
-     * most candidates; the determinant's rounding bound, which needs every
-     * magnitude, is only formed for a candidate that passed them.  The verdict
-     * is the same conjunction in any order. */
-    const double sgn = det < 0.0 ? -1.0 : 1.0;
-    const double adet = det * sgn;
-    const double u = (s[0] * p[0] + s[1] * p[1] + s[2] * p[2]) * sgn;
-    if (!((u >= 0.0) & (u <= adet))) {
-        return 0;
-    }
     const double q[3] = {s[1] * e1[2] - s[2] * e1[1], s[2] * e1[0] - s[0] * e1[2],
                          s[0] * e1[1] - s[1] * e1[0]};
-    const double v = (r->d[0] * q[0] + r->d[1] * q[1] + r->d[2] * q[2]) * sgn;
     const double tt = (e2[0] * q[0] + e2[1] * q[1] + e2[2] * q[2]) * sgn;
-    if (!((v >= 0.0) & (u + v <= adet) & (tt > 0.0) & (tt < t_max * adet))) {
+    if (!((tt > 0.0) & (tt < t_max * adet))) {
         return 0;
     }
     /* det = e1 . (d x e2): its rounding is bounded by the magnitudes of every product in it */
@@ -62,6 +53,37 @@ GC_INLINE int gc_isect_moller_trumbore(const gc_ray *r, const gc_tri *tri, doubl
     }
     *t_out = t;
     return 1;
+}
+
+GC_INLINE int gc_isect_moller_trumbore(const gc_ray *r, const gc_tri *tri, double t_max,
+                                       double *t_out)
+{
+    const double *v0 = tri->v0, *v1 = tri->v1, *v2 = tri->v2;
+    const double e1[3] = {v1[0] - v0[0], v1[1] - v0[1], v1[2] - v0[2]};
+    const double e2[3] = {v2[0] - v0[0], v2[1] - v0[1], v2[2] - v0[2]};
+    const double p[3] = {r->d[1] * e2[2] - r->d[2] * e2[1], r->d[2] * e2[0] - r->d[0] * e2[2],
+                         r->d[0] * e2[1] - r->d[1] * e2[0]};
+    const double det = e1[0] * p[0] + e1[1] * p[1] + e1[2] * p[2];
+    const double s[3] = {r->o[0] - v0[0], r->o[1] - v0[1], r->o[2] - v0[2]};
+    /* Barycentrics and t scaled by det, compared with det's sign folded in, so
+     * nothing divides before a hit.  The cheap range tests come first and reject
+     * most candidates; depth and the determinant's rounding bound, which needs
+     * every magnitude, are formed only for a candidate that passed them
+     * (gc_isect_moller_trumbore_finish).  The verdict is the same conjunction
+     * in any order. */
+    const double sgn = det < 0.0 ? -1.0 : 1.0;
+    const double adet = det * sgn;
+    const double u = (s[0] * p[0] + s[1] * p[1] + s[2] * p[2]) * sgn;
+    if (!((u >= 0.0) & (u <= adet))) {
+        return 0;
+    }
+    const double q[3] = {s[1] * e1[2] - s[2] * e1[1], s[2] * e1[0] - s[0] * e1[2],
+                         s[0] * e1[1] - s[1] * e1[0]};
+    const double v = (r->d[0] * q[0] + r->d[1] * q[1] + r->d[2] * q[2]) * sgn;
+    if (!((v >= 0.0) & (u + v <= adet))) {
+        return 0;
+    }
+    return gc_isect_moller_trumbore_finish(r, tri, sgn, adet, t_max, t_out);
 }
 
 /* Woop, Benthin and Wald, "Watertight Ray/Triangle Intersection", JCGT 2(1)
