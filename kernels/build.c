@@ -256,15 +256,21 @@ static gc_status collect_pairs(builder *b, const gc_node *nd, const uint32_t *pr
     for (int64_t k = 0; k < n_prims; ++k) {
         const gc_tri *t = &b->g->tris[prims[k]];
         int32_t r0[3], r1[3];
+        int spread = 0; /* axes along which the bounds span several cells or leave the node */
         for (int i = 0; i < 3; ++i) {
             double a = GC_MIN(t->v0[i], GC_MIN(t->v1[i], t->v2[i]));
             double c = GC_MAX(t->v0[i], GC_MAX(t->v1[i], t->v2[i]));
             double w = GC_CELL_WIDEN_FRACTION * nd->cell[i] +
                        GC_CELL_WIDEN_ULPS * DBL_EPSILON * GC_MAX(fabs(a), fabs(c));
             axis_range(nd, i, a - w, c + w, &r0[i], &r1[i]);
+            spread += (r0[i] != r1[i]) | (a - w < nd->lo[i]) | (c + w > nd->hi[i]);
         }
         const int64_t span = (int64_t)(r1[0] - r0[0] + 1) * (r1[1] - r0[1] + 1) * (r1[2] - r0[2] + 1);
-        if (span == 1 || !exact) { /* every cell of the bounds */
+        /* Bounds in one cell, or in one row of cells whose cross-section holds
+         * them: the triangle lies inside the (widened) row, and being connected it
+         * meets every cell its bounds meet along the row, so the separating-axis
+         * test would accept them all. */
+        if (span == 1 || spread <= 1 || !exact) { /* every cell of the bounds */
             while (n + span > cap) {
                 if ((st = grow_pairs(b, &pairs, &cap)) != GC_OK) {
                     goto fail;

@@ -15,6 +15,7 @@
  * Everything is seeded: two runs trace the same rays.
  */
 #define _POSIX_C_SOURCE 199309L
+#include "gc_internal.h"
 #include "gridcal.h"
 
 #include <math.h>
@@ -183,6 +184,22 @@ static void resolution_for(double cells, const double ext[3], int32_t res[3])
     }
 }
 
+/* FNV-1a digest of the grid's cells and references: two builds that store the
+ * same references in the same order have the same digest. */
+static uint64_t grid_digest(const gc_grid *g)
+{
+    uint64_t h = 1469598103934665603ull;
+    const unsigned char *p = (const unsigned char *)g->cells;
+    for (size_t k = 0; k < (size_t)g->n_cells * sizeof(gc_cell); ++k) {
+        h = (h ^ p[k]) * 1099511628211ull;
+    }
+    p = (const unsigned char *)g->refs;
+    for (size_t k = 0; k < (size_t)g->n_refs * sizeof(uint32_t); ++k) {
+        h = (h ^ p[k]) * 1099511628211ull;
+    }
+    return h;
+}
+
 typedef struct {
     const char *name;
     int scene;      /* 0 icosphere, 1 cylinder */
@@ -268,10 +285,10 @@ int main(int argc, char **argv)
         }
         char res[32];
         snprintf(res, sizeof res, "%dx%dx%d", p.resolution[0], p.resolution[1], p.resolution[2]);
-        printf("%-20s %8lld %6d %14s %9lld %12.2f %10.2f %9.1f %10.3f  (checksum %.15e)\n", bc->name,
+        printf("%-20s %8lld %6d %14s %9lld %12.2f %10.2f %9.1f %10.3f  (checksum %.15e, grid %016llx)\n", bc->name,
                (long long)m.nf, info.levels, res, (long long)info.n_refs, 1e3 * best_build,
                1e-6 * (double)info.n_refs / best_build, best / (double)n_rays, 1e3 * (double)n_rays / best,
-               checksum);
+               checksum, (unsigned long long)grid_digest(g));
         fflush(stdout);
         gc_grid_free(g);
         free(m.v);
