@@ -451,10 +451,12 @@ static gc_status build_node(builder *b, const uint32_t *prims, int64_t n_prims, 
                 st = GC_ERR_OVERFLOW;
                 break;
             }
-            st = reserve(b, (void **)&g->refs, &b->cap_refs, g->n_refs + count, sizeof(uint32_t),
-                         "the triangle references");
-            if (st != GC_OK) {
-                break;
+            if (g->n_refs + count > b->cap_refs) {
+                st = reserve(b, (void **)&g->refs, &b->cap_refs, g->n_refs + count, sizeof(uint32_t),
+                             "the triangle references");
+                if (st != GC_OK) {
+                    break;
+                }
             }
             if (count > 0) {
                 memcpy(g->refs + g->n_refs, sorted + off[c], (size_t)count * sizeof(uint32_t));
