@@ -278,11 +278,21 @@ def build_parser() -> argparse.ArgumentParser:
     sp = verb("scenes", "list the built-in scenes with their statistics")
     sp.set_defaults(func=cmd_scenes)
 
+    from . import bench as _bench
+    from . import compare as _compare
     from . import export as _export
+    from . import paper as _paper
     from . import predict as _predict
+    from . import render as _render
+    from . import tradeoff as _tradeoff
 
     _predict.add_parser(sub)
     _export.add_parser(sub)
+    _render.add_parser(sub)
+    _paper.add_parser(sub)
+    _bench.add_parser(sub)
+    _compare.add_parser(sub)
+    _tradeoff.add_parser(sub)
     return p
 
 

@@ -736,17 +736,56 @@ def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analyt
     if "simulation" in plan:
         out["simulation"] = plan["simulation"]
     out["timing_s"] = time.perf_counter() - t0
-    return _plain(out)
+    return json_ready(out)
 
 
-def _plain(x):
+def recommended_grid(scene, *, constants=None, samples=None, ratio=None, levels="auto", mailbox=False):
+    """The analytic fidelity's recommended grid, built in the kernel.
+
+    Same plan as :func:`predict` with ``fidelity="analytic"`` (and the same arguments):
+    ``levels="1"`` gives the uniform recommendation, ``"auto"`` the nested one (which may
+    be a single level when no deeper grid is predicted to pay).  A nested plan is built
+    with its top resolution and its per-cell depth-1 subgrid resolutions; deeper levels
+    follow the kernel's rule.
+
+    Returns ``(grid, plan)``: a :class:`calibrate._grid.Grid` and a dict with ``levels``
+    (the number of levels), ``resolution`` (top [nx, ny, nz]), ``predict_s`` (seconds to
+    plan, scene statistics included unless already cached) and ``build_s`` (seconds to
+    build).
+    """
+    levels = _check_choice("levels", levels, LEVEL_CHOICES)
+    if not isinstance(mailbox, (bool, np.bool_)):
+        raise ValueError(f"mailbox must be True or False, got {mailbox!r}")
+    k = resolve_constants(constants, samples, ratio)
+    if not isinstance(scene, Scene):
+        scene = Scene.load(scene)
+    t0 = time.perf_counter()
+    plan, _ = _analytic_plan(scene, scene_statistics(scene), k, levels, bool(mailbox))
+    n_levels = len(plan["levels"])
+    sub = None
+    if n_levels > 1:
+        counts = plan["counts"]
+        sub = _kernel_subgrid_resolutions(scene, scene.stats, counts, plan["overlap"])
+        top = _res_list(counts.top_resolution)
+    else:
+        top = _res_list(plan["levels"][0]["resolution"])
+    t1 = time.perf_counter()
+    if n_levels > 1:
+        grid = Grid.nested(scene, levels=n_levels, resolution=top, subgrid_resolutions=sub, mailbox=bool(mailbox))
+    else:
+        grid = Grid.uniform(scene, top, mailbox=bool(mailbox))
+    t2 = time.perf_counter()
+    return grid, dict(levels=n_levels, resolution=top, predict_s=t1 - t0, build_s=t2 - t1)
+
+
+def json_ready(x):
     """numpy scalars/arrays and tuples -> JSON types; non-finite floats -> None."""
     if isinstance(x, dict):
-        return {str(key): _plain(v) for key, v in x.items()}
+        return {str(key): json_ready(v) for key, v in x.items()}
     if isinstance(x, (list, tuple)):
-        return [_plain(v) for v in x]
+        return [json_ready(v) for v in x]
     if isinstance(x, np.ndarray):
-        return _plain(x.tolist())
+        return json_ready(x.tolist())
     if isinstance(x, (bool, np.bool_)):
         return bool(x)
     if isinstance(x, (int, np.integer)):
@@ -760,6 +799,9 @@ def _plain(x):
 # ---------------------------------------------------------------------------------------
 # command line
 # ---------------------------------------------------------------------------------------
+
+_plain = json_ready  # the names render and paper import
+
 
 def add_parser(sub):
     """Register the ``predict`` verb on an argparse subparsers object; returns its parser."""
@@ -784,7 +826,9 @@ def add_parser(sub):
     return sp
 
 
-def _constants_from_args(args) -> dict:
+def constants_from_args(args) -> dict:
+    """The constants source of a verb's ``--ratio`` / ``--calibration`` arguments (``ratio=`` or
+    ``samples=`` and ``constants=`` for :func:`predict`); no calibration file raises UserError."""
     if getattr(args, "ratio", None) is not None:
         return dict(ratio=args.ratio)
     path = Path(args.calibration) if getattr(args, "calibration", None) else Path(DEFAULT_CALIBRATION)
@@ -799,12 +843,15 @@ def _constants_from_args(args) -> dict:
                 constants={f"{n}_ns": getattr(k, n) for n in ("t_setup", "t_step", "t_int", "t_sub")})
 
 
+_constants_from_args = constants_from_args  # the name render and paper import
+
+
 def cmd_predict(args) -> int:
     """Run the ``predict`` verb: JSON on stdout with ``--json``, else rich tables."""
     import json
     import sys
 
-    src = _constants_from_args(args)
+    src = constants_from_args(args)
     scene = Scene.load(args.mesh)
     slow = args.fidelity == "simulated" or (args.levels != "1" and args.fidelity == "analytic")
     if slow and not args.quiet and not args.json:

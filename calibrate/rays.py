@@ -19,6 +19,10 @@ empty mesh, ...). The same arguments give bit-identical arrays.
     Pinhole-camera primary rays looking at the box centre from outside.
 ``surface``
     Ambient-occlusion-style rays leaving area-uniform points of a mesh.
+``aimed_at_edges``
+    Rays from inside a closed mesh aimed exactly at its vertices and edges,
+    where a non-watertight triangle test lets rays slip through (these
+    directions are ``target - origin``, not unit length, so t = 1 at the target).
 
 ``RAY_SETS`` maps a name to a generator with the common signature
 ``(vertices, faces, n, seed) -> (origins, directions)`` (the box is the
@@ -43,6 +47,8 @@ __all__ = [
     "camera",
     "camera_grid",
     "surface",
+    "aimed_at_edges",
+    "unique_edges",
     "mesh_bounds",
 ]
 
@@ -377,6 +383,54 @@ def surface(vertices, faces, n: int, seed, side: str = "random") -> Rays:
     offset = SURFACE_OFFSET_FRACTION_OF_DIAGONAL * np.linalg.norm(hi - lo)
     origins = points + offset * normal
     return np.ascontiguousarray(origins), np.ascontiguousarray(directions)
+
+
+def unique_edges(faces) -> np.ndarray:
+    """(E, 2) int64 undirected edges of a triangle mesh, each once (smaller index first)."""
+    f = np.asarray(faces, dtype=np.int64)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    return np.unique(np.sort(e, axis=1), axis=0)
+
+
+def aimed_at_edges(vertices, faces, n_edge_points: int, seed, origin_radius: float = 0.1, centre=(0.0, 0.0, 0.0)):
+    """Rays from inside a closed mesh aimed exactly at every vertex, every edge midpoint and random edge points.
+
+    After pbrt-v4's ``Triangle.Watertight`` test.  Origins are uniform in the ball of
+    ``origin_radius`` about ``centre``, which must lie inside the (star-shaped) mesh;
+    targets are every vertex once, every edge's midpoint once and ``n_edge_points``
+    uniformly random points on uniformly random edges -- the places where a
+    non-watertight ray/triangle test lets a ray slip between two triangles.  A ray
+    that hits nothing has leaked.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float64; faces : (F, 3) int64, a closed mesh around ``centre``.
+    n_edge_points : int >= 0; seed : int >= 0 or a numpy Generator.
+
+    Returns
+    -------
+    origins : (n, 3) float64; directions : (n, 3) float64 = target - origin (not unit
+    length: t = 1 at the target); kind : (n,) str array, 'vertex', 'midpoint' or 'edge point'.
+    n = V + E + n_edge_points.
+    """
+    v, f = _check_mesh(vertices, faces)
+    if isinstance(n_edge_points, (bool, np.bool_)) or not isinstance(n_edge_points, (int, np.integer)) \
+            or n_edge_points < 0:
+        raise ValueError(f"n_edge_points must be a non-negative integer, got {n_edge_points!r}")
+    if not (np.isfinite(origin_radius) and origin_radius >= 0):
+        raise ValueError(f"origin_radius must be a finite number >= 0, got {origin_radius!r}")
+    rng = _rng(seed)
+    edges = unique_edges(f)
+    a, b = v[edges[:, 0]], v[edges[:, 1]]
+    pick = rng.integers(0, len(edges), int(n_edge_points))
+    s = rng.random((int(n_edge_points), 1))
+    targets = np.concatenate([v, 0.5 * (a + b), a[pick] + s * (b[pick] - a[pick])])
+    kind = np.array(["vertex"] * len(v) + ["midpoint"] * len(edges) + ["edge point"] * len(pick))
+    n = len(targets)
+    u = rng.normal(size=(n, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    origins = np.asarray(centre, dtype=np.float64) + origin_radius * np.cbrt(rng.random((n, 1))) * u
+    return np.ascontiguousarray(origins), np.ascontiguousarray(targets - origins), kind
 
 
 # ----------------------------------------------------------------------------------

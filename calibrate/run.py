@@ -58,6 +58,24 @@ PARTIAL_VERSION = 1
 
 
 @dataclass
+class Stage:
+    """The state of a run after one stage's fit (what :func:`run_calibration` passes ``on_stage``).
+
+    stage : 1-based stage number; rounds : values requested per configuration so far;
+    elapsed_s : wall time since the run started (building, measuring and every fit so far);
+    values : timed values over all configurations; result : the stage's :class:`calibrate.fit.FitResult`
+    (in-context fit); ratio_rel_width : full width of r's 95% interval over its median.
+    """
+
+    stage: int
+    rounds: int
+    elapsed_s: float
+    values: int
+    result: object
+    ratio_rel_width: float
+
+
+@dataclass
 class RunResult:
     calibration: dict
     wall_s: float
@@ -203,10 +221,14 @@ def _isolated_fit(recs, seed):
 def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
                     target_rel_width: float | None = DEFAULT_TARGET_REL_WIDTH,
                     intersector: str = "watertight", seed: int = 0, resume: bool = False,
-                    progress=None, status=None) -> RunResult:
+                    progress=None, status=None, on_stage=None) -> RunResult:
     """Measure, fit, validate on held-back configurations, and save ``out`` atomically.
 
     progress(done, total, label) reports measuring; status(text) reports stages.
+    on_stage(stage) is called after every stage's fit with a :class:`Stage` (the
+    posterior a run stopping there would have); a true return value ends measuring
+    there, as a reached target would (``calibrate tradeoff`` reads one long run's
+    stages as the runs of shorter budgets).
     Raises UserError for bad arguments, MeasurementInterrupted (after saving the
     partial file) on Ctrl-C, and fit errors when the data cannot be fitted.
     """
@@ -253,6 +275,10 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
                 raise UserError(f"the measurements could not be fitted within the budget: {exc}") from None
             width = _rel_width(result)
             enough = target_rel_width is None or width <= target_rel_width
+            if on_stage is not None and on_stage(Stage(
+                    stage=stage, rounds=rounds, elapsed_s=time.monotonic() - t_start, result=result,
+                    values=sum(len(m.values_ns) for m in timings.values()), ratio_rel_width=width)):
+                enough = True
             if enough or time.monotonic() >= deadline - FIT_RESERVE_S:
                 if not enough:
                     warnings.append(f"budget spent: r's 95% interval is {100 * width:.1f}% of its median wide, "
@@ -283,7 +309,8 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
                     rays_per_batch=suites.RAYS_PER_BATCH, min_value_ns=MIN_VALUE_NS)
         from ._kernels import CFLAGS
 
-        cal = calfile.from_fit(result, fingerprint=fingerprint(extra={"kernel_build": CFLAGS}),
+        cal = calfile.from_fit(result, fingerprint=fingerprint(
+            extra={"kernel_build": CFLAGS, "timing_clock": suites.TIMING_CLOCK}),
                                measurements=recs, isolated=isolated, meta=meta)
         calfile.save(out, cal)
         if part.exists():

@@ -692,6 +692,25 @@ def test_bench_accepts_numpy_integer_loops(grid):
     assert elapsed_ns >= 0 and checksum == pytest.approx(2 * one, rel=1e-12)
 
 
+def test_timed_batch_thread_clock_counts_the_same_work(grid):
+    """The thread clock times the same loop: same checksum, and a single thread's CPU
+    time cannot exceed the wall time around it."""
+    import time
+
+    run_wall, run_thread = grid.timed_batch(O3, D3), grid.timed_batch(O3, D3, clock="thread")
+    t0 = time.perf_counter_ns()
+    elapsed, checksum = run_thread(50_000)
+    wall = time.perf_counter_ns() - t0
+    assert 0 < elapsed <= wall + 1_000_000  # the thread clock may tick in steps of up to 1 ms
+    assert checksum == run_wall(50_000)[1]
+
+
+@pytest.mark.parametrize("clock", ["cpu", "", None, 1])
+def test_timed_batch_rejects_unknown_clock(grid, clock):
+    with pytest.raises(ValueError, match=r"clock must be one of wall, thread"):
+        grid.timed_batch(O3, D3, clock=clock)
+
+
 @pytest.mark.parametrize("ragged", ["origins", "directions"])
 def test_ragged_rays_are_named(grid, scene, ragged):
     rows = [[0.1, 0.1, 0.1], [0.2, 0.2]]

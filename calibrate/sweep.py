@@ -1,0 +1,427 @@
+"""Measured sweeps of real traversal time over grid resolutions.
+
+A :class:`GridSpec` names a grid without building it: a uniform grid's resolution, or
+a nested grid's top resolution and how its subgrids are sized.  :func:`sweep` builds
+several specs over one scene, counts their work on a ray batch with the instrumented
+twin (:meth:`calibrate._grid.Grid.count`) and times the un-instrumented twin on the
+same rays with :func:`calibrate.protocol.measure` (loop calibration, discarded
+warm-ups, rounds in a random order so drift hits every spec alike).  The result per
+spec is the median and MAD of ns per ray beside the counts per ray.
+
+:func:`fit_minimum` puts a smooth curve (a quadratic in log time against log scale)
+through the points near the lowest measured one, so the "measured best" of a sweep is
+the curve's vertex, not merely the luckiest noisy point; :func:`penalty` is the
+relative excess ``time(choice) / time(best) - 1``.
+
+Subgrid sizing of a nested spec (``subgrids``):
+
+``model``
+    As ``calibrate predict`` plans it: :func:`models.nested.nested_counts` sizes each
+    depth-1 subgrid from its own sub-scene for the ratio ``ratio`` (the general
+    model's cubic optimum per cell) at the spec's top resolution; the kernel's rule
+    sizes deeper levels.  ``sub_scale`` multiplies every depth-1 subgrid's axes.
+``rule``
+    The kernel's rule: a cell with ``n > threshold`` references gets
+    ``(scale n)^exponent`` cells (Manta's exponents unless ``exponents`` is given).
+``fixed``
+    Every subdivided cell gets ``levels[1]`` (only with 2 levels).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import weakref
+from dataclasses import dataclass, field, replace
+from typing import Callable, Sequence
+
+import numpy as np
+
+from . import protocol
+from ._grid import DEFAULT_SUBDIVIDE_THRESHOLD, MANTA_SCALE, Grid, Scene
+
+__all__ = [
+    "GridSpec",
+    "SWEEP_ROUNDS",
+    "SWEEP_MIN_VALUE_NS",
+    "MAX_SWEEP_CELLS",
+    "scaled_resolutions",
+    "measure_time_per_ray",
+    "sweep",
+    "best_point",
+    "penalty",
+    "fit_minimum",
+]
+
+#: Values (rounds) per spec and the minimum duration of one value (ns): shorter than a
+#: calibration's (protocol.MIN_VALUE_NS_DEFAULT) since a sweep times many specs.
+SWEEP_ROUNDS = 7
+SWEEP_MIN_VALUE_NS = 10_000_000
+SWEEP_WARMUPS = 1
+#: A spec whose top level would exceed this many cells is not built (memory and time).
+MAX_SWEEP_CELLS = 2 ** 25
+#: A grid whose build would take more memory than this (bytes) is not built.
+MAX_SWEEP_MEMORY_BYTES = 2 ** 31
+#: fit_minimum: the quadratic goes through the points within this factor in scale of the
+#: lowest one, and must agree with the lowest point within this relative difference (or
+#: its noise, if larger).
+FIT_HALF_SPAN = 2.0
+FIT_AGREEMENT = 0.02
+FIT_MIN_NEIGHBOURS = 2
+#: Clocks a value may be read with (see _timed): the timing thread's CPU time leaves out
+#: the time the thread waited for a core, so a busy host disturbs the values less.
+CLOCKS = ("thread", "wall")
+DEFAULT_CLOCK = "thread"
+SUBGRID_MODES = ("model", "rule", "fixed")
+
+_MODEL_CACHE: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def _res3(res) -> tuple[int, int, int]:
+    r = tuple(int(x) for x in res)
+    if len(r) != 3 or min(r) < 1:
+        raise ValueError(f"a resolution needs three whole numbers >= 1, got {res!r}")
+    return r
+
+
+def scaled_resolutions(res, factors) -> list[tuple[int, int, int]]:
+    """``res`` (nx, ny, nz) scaled per axis by each factor, rounded, every axis >= 1.
+
+    res : three positive whole numbers; factors : iterable of positive numbers.
+    Returns one resolution per factor, in the order given (duplicates kept).
+    """
+    base = np.asarray(_res3(res), dtype=np.float64)
+    out = []
+    for f in factors:
+        f = float(f)
+        if not (math.isfinite(f) and f > 0):
+            raise ValueError(f"scale factors must be finite and > 0, got {f!r}")
+        out.append(tuple(int(max(1, round(x * f))) for x in base))
+    return out
+
+
+@dataclass(frozen=True)
+class GridSpec:
+    """A grid to build: kind ``uniform`` or ``nested``.
+
+    levels : per-axis resolutions, top first (a uniform grid has one; a nested grid
+        has the top and, with ``subgrids='fixed'``, the subgrids' resolution; with
+        ``model`` or ``rule`` a second entry is informative only, e.g. the median).
+    depth : levels of a nested grid (>= 2; default ``len(levels)``, at least 2).
+    subgrids : "model" | "rule" | "fixed" (module docstring); nested only.
+    ratio : T_int / T_step the ``model`` subgrids are sized for.
+    sub_scale : per-axis factor on the depth-1 subgrids (``model``) or their cells
+        (``rule``: total cells times ``sub_scale^3``).
+    scale, exponents, threshold : the kernel rule's constant, per-level exponents
+        and the references a cell holds before it subdivides.
+    label : a name for reports (not part of the spec's identity: equal specs are one grid).
+    """
+
+    kind: str
+    levels: tuple
+    depth: int | None = None
+    subgrids: str = "model"
+    ratio: float | None = None
+    sub_scale: float = 1.0
+    scale: float = MANTA_SCALE
+    exponents: tuple | None = None
+    threshold: int = DEFAULT_SUBDIVIDE_THRESHOLD
+    label: str = field(default="", compare=False)
+
+    def __post_init__(self):
+        if self.kind not in ("uniform", "nested"):
+            raise ValueError(f"GridSpec kind must be 'uniform' or 'nested', got {self.kind!r}")
+        levels = tuple(_res3(r) for r in self.levels)
+        if not levels:
+            raise ValueError("GridSpec needs at least the top resolution in levels")
+        object.__setattr__(self, "levels", levels)
+        if self.exponents is not None:
+            object.__setattr__(self, "exponents", tuple(float(e) for e in self.exponents))
+        if self.kind == "uniform":
+            if len(levels) != 1:
+                raise ValueError(f"a uniform GridSpec has one resolution, got {len(levels)}")
+            return
+        depth = self.depth if self.depth is not None else max(2, len(levels))
+        object.__setattr__(self, "depth", int(depth))
+        if self.depth < 2:
+            raise ValueError(f"a nested GridSpec needs depth >= 2, got {self.depth}")
+        if self.subgrids not in SUBGRID_MODES:
+            raise ValueError(f"unknown subgrids {self.subgrids!r}; choose one of {', '.join(SUBGRID_MODES)}")
+        if self.subgrids == "model" and not (self.ratio is not None and self.ratio > 0):
+            raise ValueError("subgrids='model' needs ratio = T_int / T_step > 0")
+        if self.subgrids == "fixed" and (len(levels) != 2 or self.depth != 2):
+            raise ValueError("subgrids='fixed' needs exactly two levels (top and subgrid resolution)")
+        if not (math.isfinite(self.sub_scale) and self.sub_scale > 0):
+            raise ValueError(f"sub_scale must be finite and > 0, got {self.sub_scale!r}")
+
+    @property
+    def top(self) -> tuple[int, int, int]:
+        return self.levels[0]
+
+    @property
+    def top_cells(self) -> int:
+        return self.top[0] * self.top[1] * self.top[2]
+
+    def scaled(self, factor: float) -> "GridSpec":
+        """Every level's per-axis resolution times ``factor`` (rounded, >= 1)."""
+        levels = tuple(scaled_resolutions(r, [factor])[0] for r in self.levels)
+        if self.kind == "uniform":
+            return replace(self, levels=levels)
+        return replace(self, levels=levels, sub_scale=self.sub_scale * float(factor))
+
+    def to_dict(self) -> dict:
+        d = dict(kind=self.kind, levels=[list(r) for r in self.levels], label=self.label)
+        if self.kind == "nested":
+            d.update(depth=self.depth, subgrids=self.subgrids, sub_scale=self.sub_scale, threshold=self.threshold)
+            if self.subgrids == "model":
+                d["ratio"] = self.ratio
+            if self.subgrids == "rule":
+                d.update(scale=self.scale, exponents=None if self.exponents is None else list(self.exponents))
+        return d
+
+    def build(self, scene: Scene, *, mailbox: bool = False, memory_limit: int | None = None) -> Grid:
+        """The grid over ``scene`` (a :class:`calibrate._grid.Grid`); ``memory_limit`` in bytes."""
+        if self.kind == "uniform":
+            return Grid.uniform(scene, self.top, mailbox=mailbox, memory_limit=memory_limit)
+        if self.subgrids == "fixed":
+            sub = np.zeros((self.top_cells, 3), dtype=np.int64)
+            occupied = self._occupied(scene).reshape(-1) > self.threshold
+            sub[occupied] = self.levels[1]
+            return Grid.nested(scene, levels=2, resolution=self.top, subgrid_resolutions=sub,
+                               threshold=self.threshold, mailbox=mailbox, memory_limit=memory_limit)
+        if self.subgrids == "rule":
+            from ._grid import manta_rule
+
+            _, exps = manta_rule(self.depth, self.scale)
+            exps = list(self.exponents) if self.exponents is not None else exps[:self.depth]
+            # (scale n)^e cells times sub_scale^3  <=>  scale' = scale * sub_scale^(3 / e) at depth 1
+            scale = self.scale * self.sub_scale ** (3.0 / exps[1])
+            return Grid.nested(scene, levels=self.depth, resolution=self.top, scale=scale, exponents=exps,
+                               threshold=self.threshold, mailbox=mailbox, memory_limit=memory_limit)
+        sub = model_subgrid_resolutions(scene, self.top, self.depth, self.ratio)
+        if self.sub_scale != 1.0:
+            nz = sub[:, 0] > 0
+            sub = sub.copy()
+            sub[nz] = np.clip(np.rint(sub[nz] * self.sub_scale), 1, 2 ** 31 - 1).astype(sub.dtype)
+        return Grid.nested(scene, levels=self.depth, resolution=self.top, subgrid_resolutions=sub,
+                           threshold=self.threshold, mailbox=mailbox, memory_limit=memory_limit)
+
+    def _occupied(self, scene: Scene) -> np.ndarray:
+        return Grid.uniform(scene, self.top).top_counts()
+
+
+def model_subgrid_resolutions(scene: Scene, top, depth: int, ratio: float) -> np.ndarray:
+    """(cells, 3) depth-1 subgrid resolutions the nested model gives at top resolution ``top``.
+
+    The plan of ``calibrate predict`` (:func:`models.nested.nested_counts`, analytic
+    leaves) for ``depth`` levels and ``T_int / T_step = ratio``, laid out per top cell
+    as the kernel takes them (x fastest; zero rows for empty cells).  Cached per scene.
+    """
+    from models.nested import nested_counts
+
+    from .predict import _geometry, _kernel_subgrid_resolutions
+
+    top = _res3(top)
+    cache = _MODEL_CACHE.setdefault(scene, {})
+    key = (top, int(depth), float(ratio))
+    if key not in cache:
+        stats = scene.stats
+        geom, corners = _geometry(scene)
+        overlap = "exact" if corners is not None else "bbox"
+        counts = nested_counts(geom, stats.box_lo, stats.box_hi, top, int(depth), float(ratio), overlap=overlap,
+                               corners=corners, leaves="analytic")
+        cache[key] = _kernel_subgrid_resolutions(scene, stats, counts, overlap)
+    return cache[key]
+
+
+# ---------------------------------------------------------------------------------------
+# measuring
+# ---------------------------------------------------------------------------------------
+
+def _as_grid(scene, spec_or_grid, mailbox=False):
+    if isinstance(spec_or_grid, Grid):
+        return spec_or_grid
+    if isinstance(spec_or_grid, GridSpec):
+        return spec_or_grid.build(scene, mailbox=mailbox, memory_limit=MAX_SWEEP_MEMORY_BYTES)
+    raise ValueError(f"expected a GridSpec or a Grid, got {type(spec_or_grid).__name__}")
+
+
+def _counts(grid: Grid, origins, directions) -> dict:
+    steps, tests, subgrids = grid.count(origins, directions)
+    info = grid.info
+    return dict(steps=float(steps.mean()), tests=float(tests.mean()), subgrids=float(subgrids.mean()),
+                cells=int(info["n_cells"]), references=int(info["n_refs"]),
+                memory_bytes=int(info["memory_bytes"]))
+
+
+def _timed(grid: Grid, o, d, clock: str):
+    """A run callable for :func:`calibrate.protocol.measure`: the kernel's own wall-clock
+    loop (``clock='wall'``), or the same loop timed by this thread's CPU clock
+    (``clock='thread'``): the kernel runs in the calling thread, so a value then leaves
+    out the time the thread waited for a core on a busy host."""
+    if clock == "wall":
+        return grid.timed_batch(o, d)
+    wall = grid.timed_batch(o, d)
+    read = time.thread_time_ns
+
+    def run(loops: int):
+        t0 = read()
+        _, checksum = wall(loops)
+        return read() - t0, checksum
+
+    return run
+
+
+def _summary(m: protocol.Measurement, n_rays: int) -> dict:
+    values = np.asarray(m.values_ns, dtype=np.float64) / n_rays
+    med, mad = protocol.median_mad(values)
+    return dict(median_ns=med, mad_ns=mad, values_ns=values.tolist(), loops=int(m.loops), warnings=m.warnings)
+
+
+def measure_time_per_ray(scene: Scene, spec_or_grid, origins, directions, *, rounds: int = SWEEP_ROUNDS,
+                         min_time: float = SWEEP_MIN_VALUE_NS * 1e-9, seed: int = 0, mailbox: bool = False,
+                         clock: str = DEFAULT_CLOCK) -> dict:
+    """Time and count one grid on a ray batch.
+
+    Returns a dict: ``median_ns``, ``mad_ns`` (ns per ray, over ``rounds`` values of the
+    un-instrumented kernel, each lasting at least ``min_time`` seconds, one warm-up
+    discarded; ``clock`` "thread" (default: the timing thread's CPU time) or "wall" (the
+    kernel's own monotonic clock)), ``values_ns`` (per ray), ``steps``, ``tests``, ``subgrids`` (mean per
+    ray, from the instrumented twin on the same rays), ``cells``, ``references``,
+    ``memory_bytes``.
+    """
+    return sweep(scene, [spec_or_grid], (origins, directions), rounds=rounds, min_time=min_time, seed=seed,
+                 mailbox=mailbox, clock=clock)[0]
+
+
+def sweep(scene: Scene, specs: Sequence, rays, *, rounds: int = SWEEP_ROUNDS,
+          min_time: float = SWEEP_MIN_VALUE_NS * 1e-9, seed: int = 0, mailbox: bool = False,
+          clock: str = DEFAULT_CLOCK, progress: Callable[[int, int, str], None] | None = None,
+          status: Callable[[str], None] | None = None) -> list[dict]:
+    """Build, count and time several grids on one ray batch, interleaved.
+
+    specs : GridSpecs or built Grids; rays : (origins, directions), (n, 3) each.
+    Every grid is built first and its work counted; then all are timed together by
+    :func:`calibrate.protocol.measure`, each round in a fresh random order drawn from
+    ``seed``.  A spec whose top level exceeds :data:`MAX_SWEEP_CELLS` cells, or whose
+    build fails (more than :data:`MAX_SWEEP_MEMORY_BYTES`), gives a dict with ``skipped`` (the reason) and no times.
+
+    Returns one dict per spec, in order (see :func:`measure_time_per_ray`), each with
+    ``spec`` (its :meth:`GridSpec.to_dict`, or None for a Grid).
+    """
+    if clock not in CLOCKS:
+        raise ValueError(f"unknown clock {clock!r}; choose one of {', '.join(CLOCKS)}")
+    o, d = rays
+    o = np.ascontiguousarray(o, dtype=np.float64)
+    d = np.ascontiguousarray(d, dtype=np.float64)
+    n_rays = int(o.shape[0])
+    if n_rays < 1:
+        raise ValueError("sweep needs at least one ray")
+    if int(rounds) < 1:
+        raise ValueError(f"rounds must be >= 1, got {rounds!r}")
+    if not (min_time > 0):
+        raise ValueError(f"min_time must be > 0 s, got {min_time!r}")
+    out: list[dict] = []
+    configs = {}
+    for i, spec in enumerate(specs):
+        row = dict(spec=spec.to_dict() if isinstance(spec, GridSpec) else None)
+        if status is not None:
+            status(f"building {i + 1}/{len(specs)}")
+        if isinstance(spec, GridSpec) and spec.top_cells > MAX_SWEEP_CELLS:
+            row["skipped"] = f"{spec.top_cells:,} top-level cells exceed the sweep's {MAX_SWEEP_CELLS:,}"
+            out.append(row)
+            continue
+        try:
+            grid = _as_grid(scene, spec, mailbox)
+        except (ValueError, MemoryError) as exc:
+            row["skipped"] = f"not built: {exc}"
+            out.append(row)
+            continue
+        row["resolution"] = list(grid.resolution)
+        row.update(_counts(grid, o, d))
+        configs[str(i)] = _timed(grid, o, d, clock)
+        out.append(row)
+        if progress is not None:
+            progress(0, 0, f"built {i + 1}/{len(specs)}")
+    if configs:
+        if status is not None:
+            status("timing")
+        measured = protocol.measure(configs, rng=np.random.default_rng(seed), rounds=int(rounds),
+                                    warmups=SWEEP_WARMUPS, min_value_ns=max(1, int(min_time * 1e9)),
+                                    progress=progress)
+        for key, m in measured.items():
+            out[int(key)].update(_summary(m, n_rays))
+    return out
+
+
+# ---------------------------------------------------------------------------------------
+# reading a sweep
+# ---------------------------------------------------------------------------------------
+
+def penalty(time_choice: float, time_best: float) -> float:
+    """Relative excess time of a choice over the best: ``time_choice / time_best - 1``."""
+    tc, tb = float(time_choice), float(time_best)
+    if not (math.isfinite(tc) and math.isfinite(tb) and tb > 0 and tc >= 0):
+        raise ValueError(f"penalty needs finite times, the best > 0; got {time_choice!r} and {time_best!r}")
+    return tc / tb - 1.0
+
+
+def best_point(points: Sequence[dict], key: str = "median_ns") -> int:
+    """Index of the point with the lowest measured ``key`` (skipped points ignored)."""
+    best, best_t = -1, math.inf
+    for i, p in enumerate(points):
+        t = p.get(key)
+        if t is not None and math.isfinite(t) and t < best_t:
+            best, best_t = i, t
+    if best < 0:
+        raise ValueError("no measured point in the sweep")
+    return best
+
+
+def fit_minimum(scales, times, *, mads=None, half_span: float = FIT_HALF_SPAN) -> dict:
+    """Smooth minimum of a measured curve ``times(scales)``.
+
+    A least-squares quadratic in ``log time`` against ``log scale`` through the lowest
+    measured point and its neighbours within a factor ``half_span`` in scale each side
+    (at least ``FIT_MIN_NEIGHBOURS`` each side where the sweep has them, so the fit has
+    points to disagree with).  Its vertex is the minimum when
+    the parabola opens upwards, the vertex lies within the fitted points' span, and the
+    curve at the lowest point agrees with it within the noise (3 scaled MADs from
+    ``mads``, at least ``FIT_AGREEMENT`` relative): a curve with a kink there (a cache
+    level, say) is not a parabola, and the lowest measured point is kept instead.
+
+    scales : (J,) positive, increasing; times : (J,) positive (ns); mads : (J,) or None.
+    Returns dict ``scale``, ``time`` (the curve's value there), ``fitted`` (bool),
+    ``at_edge`` (the lowest point is the first or last of the sweep), ``window``
+    ([first, last] index used), ``coef`` (quadratic coefficients, highest first).
+    """
+    s = np.asarray(scales, dtype=np.float64)
+    t = np.asarray(times, dtype=np.float64)
+    if s.shape != t.shape or s.ndim != 1 or s.size == 0:
+        raise ValueError("fit_minimum needs scales and times of one equal, non-zero length")
+    if np.any(~np.isfinite(s)) or np.any(s <= 0) or np.any(~np.isfinite(t)) or np.any(t <= 0):
+        raise ValueError("fit_minimum needs finite positive scales and times")
+    if np.any(np.diff(s) <= 0):
+        raise ValueError("fit_minimum needs increasing scales")
+    if not half_span > 1:
+        raise ValueError(f"half_span must be > 1, got {half_span!r}")
+    j = int(np.argmin(t))
+    at_edge = j == 0 or j == s.size - 1
+    near = np.flatnonzero(np.abs(np.log(s / s[j])) <= math.log(half_span) * (1 + 1e-12))
+    lo = min(int(near.min()), max(0, j - FIT_MIN_NEIGHBOURS))
+    hi = max(int(near.max()), min(s.size - 1, j + FIT_MIN_NEIGHBOURS)) + 1
+    x, y = np.log(s[lo:hi]), np.log(t[lo:hi])
+    out = dict(scale=float(s[j]), time=float(t[j]), fitted=False, at_edge=bool(at_edge), window=[lo, hi - 1],
+               coef=None)
+    if x.size >= 3:
+        coef = np.polyfit(x, y, 2)
+        a, b, _ = coef
+        noise = FIT_AGREEMENT if mads is None else max(FIT_AGREEMENT,
+                                                       3.0 * protocol.MAD_TO_SIGMA * float(mads[j]) / t[j])
+        agrees = abs(math.exp(np.polyval(coef, math.log(s[j]))) / t[j] - 1.0) <= noise
+        if a > 0 and agrees:
+            xv = -b / (2.0 * a)
+            if x[0] <= xv <= x[-1]:
+                out.update(scale=float(math.exp(xv)), time=float(math.exp(np.polyval(coef, xv))), fitted=True,
+                           coef=[float(c) for c in coef])
+    return out

@@ -1,0 +1,112 @@
+"""`calibrate compare` on a small built-in scene with a short sweep: the JSON contract,
+the measured minimum inside the sweep, the plot, and bad input."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from calibrate import cli
+from calibrate.compare import BASELINE_MARKERS, compare_scene, sweep_factors
+
+#: The last calibrated r of the reference host; cylinder196's measured optimum lies well
+#: inside 1/4x..4x of its prediction for any plausible r (steps and tests are both large
+#: at either end of the sweep on 196 long triangles).
+RATIO = 0.926
+SHORT = ["--ratio", str(RATIO), "--points", "7", "--ray-count", "512", "--rounds", "3", "--min-time", "0.002"]
+SCENE_KEYS = ("penalty", "predicted_resolution", "best_measured_resolution", "baselines", "points", "curves",
+              "predicted_time_ns", "best_measured_time_ns", "predicted_levels", "best_measured_levels")
+POINT_KEYS = ("levels", "factor", "resolution", "median_ns", "mad_ns", "steps", "tests", "subgrids", "cells",
+              "predicted")
+
+
+def _run(argv, capsys):
+    code = cli.main(argv)
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+@pytest.fixture(scope="module")
+def short_run(tmp_path_factory):
+    """One short compare of cylinder196 (uniform grids), JSON and plot."""
+    import contextlib
+    import io
+
+    plot = tmp_path_factory.mktemp("compare") / "cyl.png"
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        code = cli.main(["compare", "cylinder196", "--levels", "1", "--json", "--quiet", "--plot", str(plot), *SHORT])
+    return code, json.loads(buf.getvalue()), plot
+
+
+def test_json_has_every_field(short_run):
+    code, doc, _ = short_run
+    assert code == 0
+    assert set(doc) == {"scenes", "summary"}
+    (r,) = doc["scenes"]
+    for key in SCENE_KEYS:
+        assert key in r, key
+    assert r["scene"] == "cylinder196"
+    assert set(r["baselines"]) == set(BASELINE_MARKERS)
+    for name, b in r["baselines"].items():
+        assert len(b["resolution"]) == 3 and b["penalty"] is not None and b["penalty"] > -0.5, name
+    assert len(r["points"]) == 7
+    for p in r["points"]:
+        for key in POINT_KEYS:
+            assert key in p, key
+        lo, hi = p["predicted"]["ci95"]
+        assert lo <= p["predicted"]["median"] <= hi
+    assert doc["summary"]["predicted"]["scenes"] == 1
+
+
+def test_measured_minimum_is_inside_the_sweep(short_run):
+    _, doc, _ = short_run
+    (r,) = doc["scenes"]
+    (curve,) = r["curves"]
+    times = [p["median_ns"] for p in curve["points"]]
+    lowest = times.index(min(times))
+    assert 0 < lowest < len(times) - 1, times
+    assert not curve["fit"]["at_edge"]
+    factors = sweep_factors(7)
+    assert factors[0] <= curve["fit"]["factor"] <= factors[-1]
+    # the penalty is the predicted grid's measured time over the best
+    assert r["penalty"] == pytest.approx(r["predicted_time_ns"] / r["best_measured_time_ns"] - 1.0)
+
+
+def test_plot_written(short_run):
+    _, _, plot = short_run
+    data = plot.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
+
+
+@pytest.mark.parametrize("argv, fragment", [
+    (["compare", "no-such-scene"], "neither a mesh file nor a built-in scene"),
+    (["compare", "cylinder196", "--points", "2"], "--points"),
+    (["compare", "cylinder196", "--points", "many"], "--points"),
+    (["compare", "cylinder196", "--levels", "4"], "--levels"),
+])
+def test_bad_input_is_one_line_exit_2_and_no_plot(argv, fragment, tmp_path, capsys):
+    plot = tmp_path / "out.png"
+    code, out, err = _run([*argv, "--ratio", str(RATIO), "--plot", str(plot)], capsys)
+    assert code == 2
+    assert err.startswith("calibrate: error:") and err.count("\n") == 1 and fragment in err
+    assert out == ""
+    assert not plot.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_no_calibration_says_what_to_do(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    code, _, err = _run(["compare", "cylinder196"], capsys)
+    assert code == 2 and "calibrate run" in err and "--ratio" in err and err.count("\n") == 1
+
+
+def test_two_level_sweep_scales_top_and_subgrids():
+    r = compare_scene("cylinder196", ratio=RATIO, levels="2", points=3, ray_count=128, rounds=1, min_time=1e-3)
+    (curve,) = r["curves"]
+    assert curve["levels"] == 2
+    subs = [p["sub_scale"] for p in curve["points"]]
+    assert subs == pytest.approx([0.5, 1.0, 2.0])  # sqrt of the factors 1/4, 1, 4
+    tops = [p["resolution"] for p in curve["points"]]
+    assert tops[0] < tops[1] < tops[2]
+    assert all(p["subgrids"] > 0 for p in curve["points"])

@@ -1,0 +1,153 @@
+"""calibrate.sweep: spec arithmetic, the counts a sweep reports, and the smooth minimum."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from calibrate import rays
+from calibrate._grid import Grid, Scene
+from calibrate.sweep import (MAX_SWEEP_CELLS, GridSpec, best_point, fit_minimum, measure_time_per_ray,
+                             model_subgrid_resolutions, penalty, scaled_resolutions, sweep)
+
+#: Short timings: these tests check counts and bookkeeping, never speed.
+FAST = dict(rounds=2, min_time=1e-4)
+N_RAYS = 256
+
+
+@pytest.fixture(scope="module")
+def cylinder():
+    return Scene.builtin("cylinder196")
+
+
+def _rays(scene, seed=0, n=N_RAYS):
+    return rays.isotropic(scene.box_lo, scene.box_hi, n, seed)
+
+
+def test_penalty_arithmetic():
+    assert penalty(110.0, 100.0) == pytest.approx(0.10)
+    assert penalty(100.0, 100.0) == 0.0
+    assert penalty(90.0, 100.0) == pytest.approx(-0.10)  # a choice measured below the fitted best: noise
+    for bad in ((1.0, 0.0), (math.nan, 1.0), (1.0, math.inf), (-1.0, 1.0)):
+        with pytest.raises(ValueError):
+            penalty(*bad)
+
+
+def test_scaled_resolutions_round_and_clamp():
+    assert scaled_resolutions((3, 1, 8), [0.1, 1.0, 2.5]) == [(1, 1, 1), (3, 1, 8), (8, 2, 20)]
+    assert scaled_resolutions((100, 50, 10), [0.01]) == [(1, 1, 1)]
+    for bad in (0.0, -1.0, math.nan):
+        with pytest.raises(ValueError):
+            scaled_resolutions((2, 2, 2), [bad])
+    with pytest.raises(ValueError):
+        scaled_resolutions((0, 2, 2), [1.0])
+
+
+def test_spec_scaled_scales_every_level():
+    spec = GridSpec("nested", [(4, 4, 10), (3, 3, 3)], subgrids="fixed")
+    s2 = spec.scaled(2.0)
+    assert s2.levels == ((8, 8, 20), (6, 6, 6))
+    assert s2.sub_scale == 2.0
+    assert GridSpec("uniform", [(5, 1, 2)]).scaled(0.1).levels == ((1, 1, 1),)
+    with pytest.raises(ValueError):
+        GridSpec("nested", [(4, 4, 4)], subgrids="model")  # no ratio
+    with pytest.raises(ValueError):
+        GridSpec("pyramid", [(4, 4, 4)])
+
+
+@pytest.mark.parametrize("index", range(2))
+def test_sweep_counts_equal_grid_count(cylinder, index):
+    """The counts a sweep reports are the instrumented twin's on the same rays."""
+    o, d = _rays(cylinder, seed=index)
+    specs = [GridSpec("uniform", [(5, 5, 20)]),
+             GridSpec("nested", [(3, 3, 6)], ratio=0.926),
+             GridSpec("nested", [(3, 3, 6)], subgrids="rule", scale=2.0)]
+    points = sweep(cylinder, specs, (o, d), seed=index, **FAST)
+    for spec, p in zip(specs, points):
+        steps, tests, subgrids = spec.build(cylinder).count(o, d)
+        assert p["steps"] == pytest.approx(float(steps.mean()), rel=1e-12)
+        assert p["tests"] == pytest.approx(float(tests.mean()), rel=1e-12)
+        assert p["subgrids"] == pytest.approx(float(subgrids.mean()), rel=1e-12)
+        assert p["median_ns"] > 0 and p["mad_ns"] >= 0 and len(p["values_ns"]) == FAST["rounds"]
+    assert points[0]["subgrids"] == 0.0 and points[1]["subgrids"] > 0
+
+
+def test_measure_time_per_ray_on_a_built_grid(cylinder):
+    o, d = _rays(cylinder)
+    grid = Grid.uniform(cylinder, (4, 4, 16))
+    for clock in ("thread", "wall"):
+        m = measure_time_per_ray(cylinder, grid, o, d, clock=clock, **FAST)
+        steps, tests, _ = grid.count(o, d)
+        assert m["tests"] == pytest.approx(float(tests.mean()))
+        assert m["median_ns"] > 0
+    with pytest.raises(ValueError):
+        measure_time_per_ray(cylinder, grid, o, d, clock="sundial", **FAST)
+
+
+def test_fixed_subgrids_give_every_subdivided_cell_that_resolution(cylinder):
+    top, sub = (3, 3, 5), (2, 3, 4)
+    spec = GridSpec("nested", [top, sub], subgrids="fixed")
+    grid = spec.build(cylinder)
+    counts = Grid.uniform(cylinder, top).top_counts()
+    subdivided = int((counts > spec.threshold).sum())
+    assert subdivided > 0
+    assert grid.info["n_cells"] == top[0] * top[1] * top[2] + subdivided * sub[0] * sub[1] * sub[2]
+
+
+def test_model_subgrids_scale_per_axis(cylinder):
+    top = (3, 3, 6)
+    base = model_subgrid_resolutions(cylinder, top, 2, 0.926)
+    spec = GridSpec("nested", [top], ratio=0.926, sub_scale=2.0)
+    n_cells = spec.build(cylinder).info["n_cells"]
+    rows = base[base[:, 0] > 0]
+    doubled = np.maximum(1, np.rint(rows * 2.0)).prod(axis=1).sum()
+    # cells with at most `threshold` references keep their list even when a row is given
+    counts = Grid.uniform(cylinder, top).top_counts().reshape(-1)
+    kept = (base[:, 0] > 0) & (counts <= spec.threshold)
+    expected = top[0] * top[1] * top[2] + doubled - np.maximum(1, np.rint(base[kept] * 2.0)).prod(axis=1).sum()
+    assert n_cells == expected
+
+
+def test_sweep_skips_specs_over_the_cell_budget(cylinder):
+    side = int(round(MAX_SWEEP_CELLS ** (1 / 3))) + 2
+    points = sweep(cylinder, [GridSpec("uniform", [(side, side, side)]), GridSpec("uniform", [(2, 2, 2)])],
+                   _rays(cylinder), **FAST)
+    assert "skipped" in points[0] and "median_ns" not in points[0]
+    assert best_point(points) == 1
+
+
+@pytest.mark.parametrize("index", range(5))
+def test_fit_minimum_recovers_a_planted_vertex(index):
+    """log t = a (log s - log s0)^2 + c with 1% noise: the vertex within 15% in scale."""
+    rng = np.random.default_rng(index)
+    s0 = float(np.exp(rng.uniform(-0.8, 0.8)))
+    a, c = rng.uniform(0.6, 1.5), math.log(500.0)
+    scales = 4.0 ** np.linspace(-1.0, 1.0, 13)
+    times = np.exp(a * (np.log(scales) - math.log(s0)) ** 2 + c + rng.normal(0.0, 0.01, scales.size))
+    fit = fit_minimum(scales, times)
+    assert fit["fitted"]
+    assert abs(math.log(fit["scale"] / s0)) < math.log(1.15)
+    assert fit["time"] == pytest.approx(500.0, rel=0.03)
+    # the curve's minimum is no higher than the lowest point's neighbourhood allows
+    assert fit["time"] <= times.min() * 1.03
+
+
+def test_fit_minimum_at_the_edge_keeps_the_lowest_point():
+    scales = np.array([1.0, 2.0, 4.0, 8.0])
+    times = np.array([100.0, 80.0, 60.0, 50.0])  # still falling at the end
+    fit = fit_minimum(scales, times)
+    assert fit["at_edge"] and not fit["fitted"]
+    assert fit["scale"] == 8.0 and fit["time"] == 50.0
+    with pytest.raises(ValueError):
+        fit_minimum([2.0, 1.0], [1.0, 1.0])
+
+
+def test_fit_minimum_keeps_the_lowest_point_at_a_kink():
+    """A curve that jumps right after its minimum (a cache level) is no parabola there."""
+    scales = 4.0 ** np.linspace(-1.0, 1.0, 7)
+    times = np.array([2834.0, 2000.0, 1853.0, 1639.0, 3512.0, 4317.0, 6492.0])
+    fit = fit_minimum(scales, times, mads=np.full(7, 10.0))
+    assert not fit["fitted"]
+    assert fit["scale"] == scales[3] and fit["time"] == 1639.0
