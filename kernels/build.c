@@ -256,10 +256,13 @@ static gc_status collect_pairs(builder *b, const gc_node *nd, const uint32_t *pr
     for (int64_t k = 0; k < n_prims; ++k) {
         const gc_tri *t = &b->g->tris[prims[k]];
         int32_t r0[3], r1[3];
+        double bmin[3], bmax[3];
         int spread = 0; /* axes along which the bounds span several cells or leave the node */
         for (int i = 0; i < 3; ++i) {
             double a = GC_MIN(t->v0[i], GC_MIN(t->v1[i], t->v2[i]));
             double c = GC_MAX(t->v0[i], GC_MAX(t->v1[i], t->v2[i]));
+            bmin[i] = a;
+            bmax[i] = c;
             double w = GC_CELL_WIDEN_FRACTION * nd->cell[i] +
                        GC_CELL_WIDEN_ULPS * DBL_EPSILON * GC_MAX(fabs(a), fabs(c));
             axis_range(nd, i, a - w, c + w, &r0[i], &r1[i]);
@@ -268,9 +271,11 @@ static gc_status collect_pairs(builder *b, const gc_node *nd, const uint32_t *pr
         const int64_t span = (int64_t)(r1[0] - r0[0] + 1) * (r1[1] - r0[1] + 1) * (r1[2] - r0[2] + 1);
         /* Bounds in one cell, or in one row of cells whose cross-section holds
          * them: the triangle lies inside the (widened) row, and being connected it
-         * meets every cell its bounds meet along the row, so the separating-axis
-         * test would accept them all. */
+         * meets every widened cell of the row that its bounds meet, so of the
+         * separating-axis test only the bounds comparison (the box axes) can
+         * reject a cell of the row. */
         if (span == 1 || spread <= 1 || !exact) { /* every cell of the bounds */
+            const int row = exact && span > 1;
             while (n + span > cap) {
                 if ((st = grow_pairs(b, &pairs, &cap)) != GC_OK) {
                     goto fail;
@@ -279,6 +284,10 @@ static gc_status collect_pairs(builder *b, const gc_node *nd, const uint32_t *pr
             for (int32_t z = r0[2]; z <= r1[2]; ++z) {
                 for (int32_t y = r0[1]; y <= r1[1]; ++y) {
                     for (int32_t x = r0[0]; x <= r1[0]; ++x) {
+                        if (row && ((bmin[0] > chi[0][x]) | (bmax[0] < clo[0][x]) | (bmin[1] > chi[1][y]) |
+                                    (bmax[1] < clo[1][y]) | (bmin[2] > chi[2][z]) | (bmax[2] < clo[2][z]))) {
+                            continue;
+                        }
                         pairs[n].cell = (uint32_t)(x + nx * y + nxy * z);
                         pairs[n].prim = prims[k];
                         ++n;
