@@ -227,6 +227,9 @@ static const bench_case CASES[] = {
     {"cylinder8k_1N_wt", 1, 2001, 1.0, 1, GC_WATERTIGHT},
     {"cylinder8k_1N_mt", 1, 2001, 1.0, 1, GC_MOLLER_TRUMBORE},
     {"cylinder8k_2lvl_wt", 1, 2001, 1.0 / 8.0, 2, GC_WATERTIGHT},
+    /* the talk's cylinder1996 at about the resolution calibrate bench recommends
+     * (35x35x172): nearly one reference per cell, so steps dominate */
+    {"cylinder2k_100N_wt", 1, 500, 100.0, 1, GC_WATERTIGHT},
 };
 
 int main(int argc, char **argv)
