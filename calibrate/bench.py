@@ -82,6 +82,8 @@ DEFAULT_SCENES = ("sphere", "cylinder1996", "room")
 #: Built-in ladder of ``--scale`` (triangle targets; the sphere has 20 f^2 of them).
 SCALE_SIZES = (1_000, 10_000, 100_000, 1_000_000, 5_000_000)
 DEFAULT_MAX_TRIANGLES = 5_000_000
+#: Most triangles a grid can hold: the kernels' triangle indices are int32.
+MAX_TRIANGLES = 2**31 - 1
 SCALE_BATCH = 16_384
 SCALE_REPEATS = 3
 #: --scale builds the recommended nested grid up to this many triangles.
@@ -512,6 +514,11 @@ def scale_bench(*, max_triangles: int = DEFAULT_MAX_TRIANGLES, sizes=SCALE_SIZES
         skipped["embree"] = embree_unavailable()
         embree = False
     opts = dict(src=src, batch=batch, repeats=repeats, embree=embree, clock=clock)
+    loaded = []  # the meshes load first: a missing or corrupt one is reported before any measuring
+    for spec in meshes:
+        note(f"loading {spec}")
+        t0 = time.perf_counter()
+        loaded.append((Scene.load(spec), time.perf_counter() - t0))
     # one untimed plan and build first: the first call's imports are not the smallest scene's cost
     recommended_grid(Scene(*sphere_mesh(20)), levels="1", **src)
     targets = [n for n in sizes if n <= max_triangles]
@@ -527,11 +534,9 @@ def scale_bench(*, max_triangles: int = DEFAULT_MAX_TRIANGLES, sizes=SCALE_SIZES
         rows.append(dict(_scale_row(scene, load_s=load_s, nested=scene.n_triangles <= nested_max_triangles, **opts),
                          series="sphere"))
         del scene, v, f
-    for spec in meshes:
-        note(f"{spec}")
-        t0 = time.perf_counter()
-        scene = Scene.load(spec)
-        load_s = time.perf_counter() - t0
+    while loaded:
+        scene, load_s = loaded.pop(0)
+        note(f"{scene.name}")
         rows.append(dict(_scale_row(scene, load_s=load_s, nested=scene.n_triangles <= nested_max_triangles, **opts),
                          series="mesh"))
     series = [r for r in rows if r["series"] == "sphere"]
@@ -624,10 +629,14 @@ def cmd_bench(args) -> int:
     for rs in ray_sets:
         if rs not in RAY_SETS:
             raise UserError(f"unknown ray set {rs!r}; choose from {', '.join(RAY_SETS)}")
+    if args.scale:
+        if args.max_triangles != int(args.max_triangles):
+            raise UserError(f"--max-triangles must be a whole number, got {args.max_triangles:g}")
+        if args.max_triangles > MAX_TRIANGLES:
+            raise UserError(f"--max-triangles must be at most {MAX_TRIANGLES:,} (the kernels number triangles "
+                            f"in 32 bits), got {args.max_triangles:g}")
     with pin_to_one_core() as pin:
         if args.scale:
-            if args.max_triangles != int(args.max_triangles):
-                raise UserError(f"--max-triangles must be a whole number, got {args.max_triangles:g}")
             result = scale_bench(max_triangles=int(args.max_triangles), meshes=tuple(args.meshes),
                                  batch=args.batch or SCALE_BATCH, repeats=args.repeats or SCALE_REPEATS,
                                  clock=args.clock, progress=show, **src)

@@ -389,6 +389,8 @@ def tradeoff(scenes=None, *, budget_s: float | None = None, quick: bool = False,
         budget_s = QUICK_BUDGET_S if quick else DEFAULT_BUDGET_S
     if not (isinstance(budget_s, (int, float)) and math.isfinite(budget_s) and budget_s > 0):
         raise UserError(f"--budget must be a positive number of seconds, got {budget_s!r}")
+    if budget_s < _run.MIN_BUDGET_S:  # the run would refuse it, but only after the intersector measurements
+        raise UserError(f"--budget {budget_s:g} s is too short: a run needs at least {_run.MIN_BUDGET_S:g} s")
     names = list(scenes) if scenes else list(QUICK_SCENES if quick else DEFAULT_SCENES)
     loaded = [Scene.load(s) for s in names]
     if len({sc.name for sc in loaded}) < len(loaded):
@@ -533,7 +535,7 @@ def plot(report: dict, path) -> Path:
 
 def add_parser(sub):
     """Register the ``tradeoff`` verb on an argparse subparsers object; returns its parser."""
-    from .cli import positive_number
+    from .cli import positive_number, seed_number
 
     help_text = ("what accuracy costs in time: calibration budget vs r's interval vs penalty, prediction "
                  "fidelity vs time vs penalty, intersector vs T_int vs leaks")
@@ -548,7 +550,7 @@ def add_parser(sub):
     sp.add_argument("--plot", metavar="FILE", help="write the figure (PNG) here")
     sp.add_argument("--quick", action="store_true",
                     help="small suites, a tiny budget, one small scene, few rays (seconds; for tests and CI)")
-    sp.add_argument("--seed", type=int, default=0)
+    sp.add_argument("--seed", type=seed_number, default=0)
     sp.set_defaults(func=cmd_tradeoff)
     return sp
 
@@ -576,13 +578,11 @@ def cmd_tradeoff(args) -> int:
 
 def _check_plot_path(path: Path) -> None:
     """Refuse a plot path that cannot be written before spending minutes measuring."""
-    if path.suffix.lower() != ".png":
+    from ._io import check_writable
+
+    if not path.is_dir() and path.suffix.lower() != ".png":
         raise UserError(f"{path}: the plot is a PNG; give a file name ending in .png")
-    parent = path.parent if str(path.parent) else Path(".")
-    if not parent.is_dir():
-        raise UserError(f"{path}: directory {parent} does not exist")
-    if path.is_dir():
-        raise UserError(f"{path}: is a directory")
+    check_writable(path)  # a directory, a missing or read-only directory, a write-protected file
 
 
 def print_report(report: dict) -> None:

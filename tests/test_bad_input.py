@@ -226,6 +226,7 @@ def _rays(n=2):
 MESH, SCENE, ARRAYS, GRID, OPTIONS, CALFILE, OUTPUT, RENDER = (
     "Mesh files", "Scenes", "Meshes and rays as arrays (API)", "Grids (API)", "Options: budgets, ratios, seeds, "
     "choices", "Calibration files", "Output files", "Rendering and the talk's claims")
+BENCH = "Benchmarks and the tradeoff study"
 
 CASES: list[Case] = [
     # -- mesh files ----------------------------------------------------------------------------
@@ -375,6 +376,48 @@ CASES: list[Case] = [
     cli(RENDER, "zero ratio", "paper --ratio 0", "must be a positive number"),
     cli(RENDER, "truncated calibration", "paper --calibration truncated.json", "the file may be truncated or corrupted"),
     cli(RENDER, "no calibration at all", "paper", "no calibration: ./calibration.json does not exist"),
+    # -- benchmarks and the tradeoff study ------------------------------------------------------
+    cli(BENCH, "unknown built-in scene", "bench spehre", "neither a mesh file nor a built-in scene"),
+    cli(BENCH, "mesh file missing", "bench missing.obj", "missing.obj: no such file", console=True),
+    cli(BENCH, "corrupt OBJ vertex", "bench bad_vertex.obj", "line 2: cannot read vertex coordinates"),
+    cli(BENCH, "mesh file missing (scaling series)", "bench --scale --max-triangles 20 missing.obj",
+        "missing.obj: no such file"),
+    cli(BENCH, "truncated binary STL (scaling series)", "bench --scale --max-triangles 20 cut_binary.stl",
+        "truncated binary STL"),
+    cli(BENCH, "zero batch", "bench --batch 0", "--batch must be at least 1"),
+    cli(BENCH, "negative repeats", "bench --repeats -2", "--repeats must be at least 1"),
+    cli(BENCH, "NaN batch", "bench --batch nan", "invalid int value: 'nan'"),
+    cli(BENCH, "unknown ray set", "bench --rays camera,sideways", "unknown ray set 'sideways'"),
+    cli(BENCH, "no ray set", "bench --rays ,", "--rays names no ray set"),
+    cli(BENCH, "unknown clock", "bench --clock sundial", "invalid choice"),
+    cli(BENCH, "zero ratio", "bench --ratio 0", "must be a positive number"),
+    cli(BENCH, "ratio and calibration together", "bench --ratio 1 --calibration good.json", "not allowed with"),
+    cli(BENCH, "truncated calibration", "bench --calibration truncated.json", "the file may be truncated or corrupted"),
+    cli(BENCH, "calibration from a future schema", "bench --calibration future.json",
+        "is newer than this gridcal understands"),
+    cli(BENCH, "zero largest sphere", "bench --scale --max-triangles 0", "must be a positive number"),
+    cli(BENCH, "NaN largest sphere", "bench --scale --max-triangles nan", "must be a positive number"),
+    cli(BENCH, "fractional largest sphere", "bench --scale --max-triangles 2000.5", "must be a whole number"),
+    cli(BENCH, "largest sphere below the smallest mesh", "bench --scale --max-triangles 10", "a whole number >= 20"),
+    cli(BENCH, "absurd largest sphere", "bench --scale --max-triangles 1e12", "must be at most 2,147,483,647"),
+    cli(BENCH, "unknown built-in scene", "tradeoff spehre", "neither a mesh file nor a built-in scene"),
+    cli(BENCH, "mesh file missing", "tradeoff missing.obj", "missing.obj: no such file"),
+    cli(BENCH, "NaN vertex in a file", "tradeoff nan.obj", "NaN or Inf coordinates"),
+    cli(BENCH, "one scene twice", "tradeoff tetra.obj tetra.obj", "scenes must have different names"),
+    cli(BENCH, "zero budget", "tradeoff --budget 0", "must be a positive number", console=True),
+    cli(BENCH, "negative budget", "tradeoff --quick --budget -5", "must be a positive number"),
+    cli(BENCH, "NaN budget", "tradeoff --budget nan", "must be a positive number"),
+    cli(BENCH, "infinite budget", "tradeoff --budget inf", "must be a positive number"),
+    cli(BENCH, "budget too short for a calibration run", "tradeoff --quick --budget 1", "is too short"),
+    cli(BENCH, "negative seed", "tradeoff --seed -1", "the seed must be from 0"),
+    cli(BENCH, "seed that is not a number", "tradeoff --seed abc", "the seed must be a whole number"),
+    cli(BENCH, "unknown option", "tradeoff --intersector fastest", "unrecognized arguments: --intersector"),
+    cli(BENCH, "plot is a directory", "tradeoff --quick --plot adir", "adir: it is a directory"),
+    cli(BENCH, "plot directory missing", "tradeoff --quick --plot nowhere/fig.png", "directory nowhere does not exist"),
+    cli(BENCH, "plot's directory is a file", "tradeoff --quick --plot out.json/fig.png", "out.json is not a directory"),
+    cli(BENCH, "plot file is read-only", "tradeoff --quick --plot locked.png", "the file is read-only"),
+    cli(BENCH, "plot directory is read-only", "tradeoff --quick --plot ro/fig.png", "directory ro is not writable"),
+    cli(BENCH, "plot name without .png", "tradeoff --quick --plot fig.svg", "the plot is a PNG"),
 ]
 
 
