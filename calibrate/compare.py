@@ -34,7 +34,7 @@ import numpy as np
 from . import predict as _predict
 from . import sweep as _sweep
 from ._grid import Scene
-from ._io import UserError, _check_destination, atomic_write_bytes
+from ._io import UserError, atomic_write_bytes, check_writable
 from .sweep import GridSpec
 
 #: Sweep points per curve (log-spaced per-axis factors) and the sweep's span each way.
@@ -44,6 +44,8 @@ MAX_POINTS = 64
 SWEEP_SPAN = 4.0
 #: Rays per batch and their seed (the same rays for every grid of a scene).
 DEFAULT_RAY_COUNT = 4096
+#: Most rays per batch on the command line: a batch's rays and hits (64 bytes a ray) stay in memory.
+MAX_RAY_COUNT = 2**24
 RAY_SEED = 1
 LEVEL_CHOICES = ("1", "2", "auto")
 #: Baselines built as nested grids: name -> (kernel rule scale, exponents); the rest are uniform.
@@ -325,7 +327,7 @@ def _points_arg(text: str) -> int:
     return n
 
 
-def _count_arg(what: str, lo: int):
+def _count_arg(what: str, lo: int, hi: int | None = None):
     def parse(text: str) -> int:
         try:
             n = int(text)
@@ -333,6 +335,8 @@ def _count_arg(what: str, lo: int):
             raise argparse.ArgumentTypeError(f"{what} must be a whole number, got {text!r}") from None
         if n < lo:
             raise argparse.ArgumentTypeError(f"{what} must be at least {lo}, got {n}")
+        if hi is not None and n > hi:
+            raise argparse.ArgumentTypeError(f"{what} must be at most {hi:,}, got {n}")
         return n
 
     return parse
@@ -359,7 +363,7 @@ def add_parser(sub):
     sp.add_argument("--points", type=_points_arg, default=DEFAULT_POINTS, metavar="N",
                     help=f"sweep points per depth, 1/{SWEEP_SPAN:g}x to {SWEEP_SPAN:g}x per axis "
                          f"(default {DEFAULT_POINTS})")
-    sp.add_argument("--ray-count", type=_count_arg("--ray-count", 1), default=DEFAULT_RAY_COUNT, metavar="N",
+    sp.add_argument("--ray-count", type=_count_arg("--ray-count", 1, MAX_RAY_COUNT), default=DEFAULT_RAY_COUNT, metavar="N",
                     help=f"rays per timed batch (default {DEFAULT_RAY_COUNT})")
     sp.add_argument("--rounds", type=_count_arg("--rounds", 1), default=_sweep.SWEEP_ROUNDS, metavar="N",
                     help=f"timed values per grid (default {_sweep.SWEEP_ROUNDS})")
@@ -380,9 +384,9 @@ def cmd_compare(args) -> int:
     src = _predict._constants_from_args(args)
     if args.plot:
         plot_path = Path(args.plot)
-        if plot_path.suffix.lower() != ".png":
+        if not plot_path.is_dir() and plot_path.suffix.lower() != ".png":
             raise UserError(f"--plot {plot_path}: the plot is a PNG; give a file name ending in .png")
-        _check_destination(plot_path)
+        check_writable(plot_path)  # a directory, a missing or read-only directory, a write-protected file
     names = args.meshes or builtin_names()
     scenes = [Scene.load(name) for name in names]  # every input checked before anything is measured
     results = []
