@@ -60,8 +60,11 @@ SWEEP_MIN_VALUE_NS = 10_000_000
 SWEEP_WARMUPS = 1
 #: A spec whose top level would exceed this many cells is not built (memory and time).
 MAX_SWEEP_CELLS = 2 ** 25
-#: A grid whose build would take more memory than this (bytes) is not built.
-MAX_SWEEP_MEMORY_BYTES = 2 ** 31
+#: A grid whose build would take more memory than this (bytes) is not built, and a sweep
+#: stops building once its grids together hold MAX_SWEEP_TOTAL_BYTES (they are all kept
+#: in memory to be timed interleaved).
+MAX_SWEEP_MEMORY_BYTES = 2 ** 29
+MAX_SWEEP_TOTAL_BYTES = 2 ** 32
 #: fit_minimum: the quadratic goes through the points within this factor in scale of the
 #: lowest one, and must agree with the lowest point within this relative difference (or
 #: its noise, if larger).
@@ -323,12 +326,17 @@ def sweep(scene: Scene, specs: Sequence, rays, *, rounds: int = SWEEP_ROUNDS,
         raise ValueError(f"min_time must be > 0 s, got {min_time!r}")
     out: list[dict] = []
     configs = {}
+    held = 0
     for i, spec in enumerate(specs):
         row = dict(spec=spec.to_dict() if isinstance(spec, GridSpec) else None)
         if status is not None:
             status(f"building {i + 1}/{len(specs)}")
         if isinstance(spec, GridSpec) and spec.top_cells > MAX_SWEEP_CELLS:
             row["skipped"] = f"{spec.top_cells:,} top-level cells exceed the sweep's {MAX_SWEEP_CELLS:,}"
+            out.append(row)
+            continue
+        if held > MAX_SWEEP_TOTAL_BYTES:
+            row["skipped"] = f"the sweep's grids already hold {held / 2**30:.1f} GiB"
             out.append(row)
             continue
         try:
@@ -339,6 +347,7 @@ def sweep(scene: Scene, specs: Sequence, rays, *, rounds: int = SWEEP_ROUNDS,
             continue
         row["resolution"] = list(grid.resolution)
         row.update(_counts(grid, o, d))
+        held += row["memory_bytes"]
         configs[str(i)] = _timed(grid, o, d, clock)
         out.append(row)
         if progress is not None:
