@@ -81,6 +81,15 @@ RATIO_MODE_T_SUB_IN_T_STEP = 2.0
 #: per-axis scales of the talk's L-level closed form for the top resolution (a walk from
 #: the closed form towards cheaper neighbours, stopping at the first dearer one).
 #: ``levels=auto`` stops at the first depth that does not beat the one above it.
+#: A deeper grid is chosen only when its predicted cost per ray is at least this fraction
+#: below the shallower one's.  The four-constant model misses what a nested grid pays in
+#: memory (several times the cells, a node fetch per subgrid entered; docs/calibration.md),
+#: and its misfit on real traversals is about 20% (the calibration's scatter term, 95%
+#: interval 18-26% on the reference host): a smaller predicted gain is not evidence.
+#: ``calibrate compare`` measured the shallower grid as fast or faster wherever the
+#: predicted gain was under 20% (sphere 20%, cylinder1996 13%, a third level on the CAD
+#: chair 2%; docs/compare.md).
+DEEPEN_MIN_GAIN = 0.20
 #: (:func:`models.nested.optimal_nested`'s nlopt search is not used: with exact overlap it
 #: takes about 20 s on 40k triangles.)
 #: Up to this many triangles the plan uses exact triangle/cell overlap (the kernel's
@@ -459,8 +468,9 @@ def _analytic_nested(scene, stats, k: Constants, L, mailbox):
     return plan, effects
 
 
-def _deepen(k: Constants, uniform, nested, stops, how: str):
-    """Depth by predicted cost per ray incl. T_sub, stopping at the first depth that does not improve.
+def _deepen(k: Constants, uniform, nested, stops, how: str, min_gain: float = DEEPEN_MIN_GAIN):
+    """Depth by predicted cost per ray incl. T_sub, stopping at the first depth that does not
+    improve on the one above it by at least ``min_gain`` (a fraction of its cost).
 
     uniform() gives the single-level (plan, effects); nested(L) an L-level one,
     raising one of ``stops`` when that depth cannot be modelled or built."""
@@ -475,12 +485,13 @@ def _deepen(k: Constants, uniform, nested, stops, how: str):
             break
         ns = k.cost(cand[0]["steps"], cand[0]["tests"], cand[0]["subgrids"])
         tried.append(f"L={L}: {ns:.4g}")
-        if ns >= best_ns:
+        if ns >= best_ns * (1.0 - min_gain):
             break
         best, best_ns = cand, ns
     best[1].append(dict(name="levels", used=True, change=0.0,
                         reason=(f"depth by {how} cost per ray incl. T_sub ({k.units}), stopping at the first "
-                                "depth that does not improve: " + ", ".join(tried))))
+                                f"depth that does not improve by {100 * min_gain:.0f}% (the model's misfit on real "
+                                "traversals): " + ", ".join(tried))))
     return best
 
 

@@ -296,3 +296,17 @@ def test_memory_estimate_uses_the_kernels_layout(i, res):
     est = _memory_bytes(scene.n_triangles, res[0] * res[1] * res[2], info["n_refs"], 1)
     # the kernel adds only its fixed-size gc_grid header
     assert 0 <= info["memory_bytes"] - est < 1024, (info["memory_bytes"], est)
+
+
+@pytest.mark.parametrize("l2, l3, depth", [(85.0, 60.0, 1), (79.0, 70.0, 2), (79.0, 60.0, 3), (120.0, 10.0, 1)])
+def test_deeper_grids_need_a_gain_beyond_the_models_misfit(l2, l3, depth):
+    """The depth rule on planted costs: L=1 costs 100; deeper only for a gain of DEEPEN_MIN_GAIN."""
+    from calibrate.predict import DEEPEN_MIN_GAIN, _deepen
+
+    assert DEEPEN_MIN_GAIN == pytest.approx(0.20)
+    k = resolve_constants(ratio=1.0)  # T_setup 0, T_step 1, T_int 1
+    plan = lambda steps, L: (dict(steps=steps, tests=0.0, subgrids=0.0, levels=[{}] * L), [])  # noqa: E731
+    cost = {2: l2, 3: l3}
+    best, effects = _deepen(k, lambda: plan(100.0, 1), lambda L: plan(cost[L], L), (ValueError,), "planted")
+    assert len(best["levels"]) == depth
+    assert "20%" in effects[-1]["reason"]
