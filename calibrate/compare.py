@@ -51,7 +51,7 @@ LEVEL_CHOICES = ("1", "2", "auto")
 #: Kalojanov, Billeter, Slusallek 2011: leaf grids of density 1.2 references per cell.
 NESTED_BASELINES = {"manta-L2-top": (8.0, None), "kalojanov-2level": (1.2, (1.0, 1.0))}
 #: Plot: figure size per scene panel (inches) and resolution.
-PANEL_INCHES = (5.0, 3.6)
+PANEL_INCHES = (5.2, 4.6)
 DPI = 90
 PANEL_COLUMNS = 2
 
@@ -302,7 +302,7 @@ def plot(results: list[dict], path) -> Path:
         ax.set_xlabel("cells (all levels)")
         ax.set_ylabel("ns per ray (thread CPU time)")
         ax.set_title(f"{r['scene']} ({r['triangles']:,} triangles)", fontsize=10)
-        ax.legend(fontsize=6.5, loc="best")
+        ax.legend(fontsize=6.5, loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=3, frameon=False)
     fig.suptitle("measured (points, MAD bars) and predicted (lines, 95% band) time per ray", fontsize=9)
     fig.tight_layout()
     buf = io.BytesIO()
