@@ -63,8 +63,8 @@ MAX_SWEEP_CELLS = 2 ** 25
 #: A grid whose build would take more memory than this (bytes) is not built, and a sweep
 #: stops building once its grids together hold MAX_SWEEP_TOTAL_BYTES (they are all kept
 #: in memory to be timed interleaved).
-MAX_SWEEP_MEMORY_BYTES = 2 ** 29
-MAX_SWEEP_TOTAL_BYTES = 2 ** 32
+MAX_SWEEP_MEMORY_BYTES = 2 ** 31
+MAX_SWEEP_TOTAL_BYTES = 6 * 2 ** 30
 #: fit_minimum: the quadratic goes through the points within this factor in scale of the
 #: lowest one, and must agree with the lowest point within this relative difference (or
 #: its noise, if larger).

@@ -75,8 +75,12 @@ def main() -> None:
         scene = Scene.load(name)
         n_rays = args.big_rays if scene.n_triangles > args.big else args.rays
         t0 = time.monotonic()
-        r = compare_scene(scene, levels=args.levels, points=args.points, ray_count=n_rays, rounds=args.rounds,
-                          **source)
+        try:
+            r = compare_scene(scene, levels=args.levels, points=args.points, ray_count=n_rays, rounds=args.rounds,
+                              **source)
+        except ValueError as exc:  # e.g. the predicted grid does not fit the sweep's memory budget
+            print(f"{scene.name:28s} skipped: {exc}", flush=True)
+            continue
         r["wall_s"] = time.monotonic() - t0
         results.append(r)
         base = "  ".join(f"{n} {_pct(b['penalty'])}" for n, b in r["baselines"].items())
