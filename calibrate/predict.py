@@ -74,6 +74,10 @@ BYTES_PER_NODE = 120
 #: T_step.  Estimate from the kernel's walk(): entering a subgrid repeats the per-axis
 #: DDA set-up (entry cell, t_next, dt for 3 axes), about the work of two cell steps.
 RATIO_MODE_T_SUB_IN_T_STEP = 2.0
+#: T_setup assumed with ``ratio`` alone when a *relative* cost matters (the depth rule's
+#: gain, :data:`DEEPEN_MIN_GAIN`), in units of T_step: the reference calibration's
+#: 58.8 ns / 22.1 ns (docs/calibration.md).  Costs reported in ratio mode keep T_setup = 0.
+RATIO_MODE_T_SETUP_IN_T_STEP = 2.66
 
 # --- nested plans ---------------------------------------------------------------------------
 #: Nested plans (L >= 2) come from :func:`models.nested.nested_counts` (Crofton composition
@@ -477,6 +481,8 @@ def _deepen(k: Constants, uniform, nested, stops, how: str, min_gain: float = DE
     best = uniform()
     best_ns = k.cost(best[0]["steps"], best[0]["tests"])
     tried = [f"L=1: {best_ns:.4g}"]
+    # the gain is relative to the whole cost of a ray, set-up included (unknown in ratio mode)
+    setup = RATIO_MODE_T_SETUP_IN_T_STEP * k.t_step if k.units != "ns" else 0.0
     for L in range(2, MAX_LEVELS + 1):
         try:
             cand = nested(L)
@@ -485,13 +491,14 @@ def _deepen(k: Constants, uniform, nested, stops, how: str, min_gain: float = DE
             break
         ns = k.cost(cand[0]["steps"], cand[0]["tests"], cand[0]["subgrids"])
         tried.append(f"L={L}: {ns:.4g}")
-        if ns >= best_ns * (1.0 - min_gain):
+        if ns + setup >= (best_ns + setup) * (1.0 - min_gain):
             break
         best, best_ns = cand, ns
     best[1].append(dict(name="levels", used=True, change=0.0,
                         reason=(f"depth by {how} cost per ray incl. T_sub ({k.units}), stopping at the first "
                                 f"depth that does not improve by {100 * min_gain:.0f}% (the model's misfit on real "
-                                "traversals): " + ", ".join(tried))))
+                                "traversals)" + (f", T_setup taken as {RATIO_MODE_T_SETUP_IN_T_STEP:g} T_step for the "
+                                                 "gain" if setup else "") + ": " + ", ".join(tried))))
     return best
 
 
