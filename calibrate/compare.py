@@ -101,13 +101,15 @@ def _model_counts(stats, terms, spec: GridSpec, point: dict) -> tuple[float, flo
 
 
 def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: str = "auto",
-                  rays: str = "isotropic", points: int = DEFAULT_POINTS, ray_count: int = DEFAULT_RAY_COUNT,
+                  fidelity: str = "analytic", rays: str = "isotropic", points: int = DEFAULT_POINTS,
+                  ray_count: int = DEFAULT_RAY_COUNT,
                   rounds: int = _sweep.SWEEP_ROUNDS, min_time: float = _sweep.SWEEP_MIN_VALUE_NS * 1e-9,
                   seed: int = 0, progress=None, status=None) -> dict:
     """Measured sweep, predicted curve and penalties of one scene (module docstring).
 
     scene : Scene, built-in name or mesh path; constants / samples / ratio : as
-    :func:`calibrate.predict.predict`; levels : "1" | "2" | "auto"; rays : "isotropic" |
+    :func:`calibrate.predict.predict`; levels : "1" | "2" | "auto"; fidelity : the
+    prediction's ("paper" | "analytic" | "simulated"); rays : "isotropic" |
     "camera"; points : sweep points per curve (>= 3); ray_count : rays per batch;
     rounds, min_time : values per grid and seconds per value.
 
@@ -127,7 +129,8 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
     src = dict(constants=constants, samples=samples, ratio=ratio)
     say = status or (lambda text: None)
     say(f"{scene.name}: predicting")
-    pred = _predict.predict(scene, levels=levels, rays=rays, **src)
+    fidelity = _predict._check_choice("fidelity", fidelity, _predict.FIDELITIES)
+    pred = _predict.predict(scene, levels=levels, rays=rays, fidelity=fidelity, **src)
     chosen = _plan_spec(pred, k.ratio, "predicted")
     depths = {"1": [1], "2": [2], "auto": [1, 2]}[levels]
     if len(pred["levels"]) not in depths:
@@ -137,8 +140,8 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
         if L == len(pred["levels"]):
             centres[L] = chosen
         else:
-            centres[L] = _plan_spec(_predict.predict(scene, levels=str(L), rays=rays, **src), k.ratio,
-                                    f"L={L} plan")
+            centres[L] = _plan_spec(_predict.predict(scene, levels=str(L), rays=rays, fidelity=fidelity, **src),
+                                    k.ratio, f"L={L} plan")
     factors = sweep_factors(points)
     curve_specs = {L: [_curve_spec(c, f) for f in factors] for L, c in centres.items()}
     baselines = _baseline_specs(pred)
@@ -220,7 +223,8 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
     else:
         t_step_ns = None
     return _predict._plain(dict(
-        scene=scene.name, triangles=scene.n_triangles, units=units, rays=rays, ray_count=int(ray_count),
+        scene=scene.name, triangles=scene.n_triangles, units=units, fidelity=fidelity, rays=rays,
+        ray_count=int(ray_count),
         constants=pred["constants"], penalty=_sweep.penalty(mc["median_ns"], t_best),
         predicted_resolution=list(chosen.top), predicted_levels=len(pred["levels"]),
         predicted_level_resolutions=[lv["resolution"] for lv in pred["levels"]],
@@ -355,6 +359,8 @@ def add_parser(sub):
                      help="predict from your own T_int/T_step alone")
     sp.add_argument("--levels", default="auto", choices=LEVEL_CHOICES,
                     help="depths to sweep and predict (auto: uniform and two-level, the prediction's own depth)")
+    sp.add_argument("--fidelity", default="analytic", choices=_predict.FIDELITIES,
+                    help="the prediction's fidelity (as calibrate predict's)")
     sp.add_argument("--rays", default="isotropic", choices=_predict.RAY_KINDS)
     sp.add_argument("--points", type=_points_arg, default=DEFAULT_POINTS, metavar="N",
                     help=f"sweep points per depth, 1/{SWEEP_SPAN:g}x to {SWEEP_SPAN:g}x per axis "
@@ -391,7 +397,8 @@ def cmd_compare(args) -> int:
             def status(text, i=i):
                 bar.status(f"[{i + 1}/{len(scenes)}] {text}")
 
-            results.append(compare_scene(scene, levels=args.levels, rays=args.rays, points=args.points,
+            results.append(compare_scene(scene, levels=args.levels, fidelity=args.fidelity, rays=args.rays,
+                                         points=args.points,
                                          ray_count=args.ray_count, rounds=args.rounds,
                                          min_time=args.min_time, progress=bar,
                                          status=status, **src))

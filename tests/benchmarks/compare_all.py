@@ -41,6 +41,7 @@ def main() -> None:
     src.add_argument("--calibration", default=None)
     ap.add_argument("--meshes", default=str(MESHES), help="directory of real meshes (default ../shared/meshes)")
     ap.add_argument("--levels", default="auto")
+    ap.add_argument("--fidelity", default="analytic")
     ap.add_argument("--points", type=int, default=DEFAULT_POINTS)
     ap.add_argument("--rays", type=int, default=4096)
     ap.add_argument("--big", type=int, default=50_000, help="triangles above which --big-rays is used")
@@ -67,7 +68,8 @@ def main() -> None:
     names = [n for n in names if Path(n).name not in args.skip and n not in args.skip]
     if args.only:
         names = [n for n in names if Path(n).name in args.only or n in args.only]
-    print(f"source: {source if 'ratio' in source else args.calibration}; levels {args.levels}; "
+    print(f"source: {source if 'ratio' in source else args.calibration}; levels {args.levels}; fidelity "
+          f"{args.fidelity}; "
           f"{args.points} points per depth; {args.rays} rays ({args.big_rays} above {args.big:,} triangles); "
           f"{args.rounds} rounds")
     results = []
@@ -76,7 +78,8 @@ def main() -> None:
         n_rays = args.big_rays if scene.n_triangles > args.big else args.rays
         t0 = time.monotonic()
         try:
-            r = compare_scene(scene, levels=args.levels, points=args.points, ray_count=n_rays, rounds=args.rounds,
+            r = compare_scene(scene, levels=args.levels, fidelity=args.fidelity, points=args.points,
+                              ray_count=n_rays, rounds=args.rounds,
                               **source)
         except ValueError as exc:  # e.g. the predicted grid does not fit the sweep's memory budget
             print(f"{scene.name:28s} skipped: {exc}", flush=True)
