@@ -85,10 +85,14 @@ def test_plot_written(short_run):
     (["compare", "cylinder196", "--points", "2"], "--points"),
     (["compare", "cylinder196", "--points", "many"], "--points"),
     (["compare", "cylinder196", "--levels", "4"], "--levels"),
+    (["compare", "cylinder196", "--fidelity", "exact"], "--fidelity"),
+    (["compare", "cylinder196", "--plot", "{tmp}/out.svg"], ".png"),
 ])
 def test_bad_input_is_one_line_exit_2_and_no_plot(argv, fragment, tmp_path, capsys):
     plot = tmp_path / "out.png"
-    code, out, err = _run([*argv, "--ratio", str(RATIO), "--plot", str(plot)], capsys)
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
+    extra = [] if "--plot" in argv else ["--plot", str(plot)]
+    code, out, err = _run([*argv, "--ratio", str(RATIO), *extra], capsys)
     assert code == 2
     assert err.startswith("calibrate: error:") and err.count("\n") == 1 and fragment in err
     assert out == ""
