@@ -391,22 +391,29 @@ def cmd_compare(args) -> int:
         _check_destination(plot_path)
     names = args.meshes or builtin_names()
     scenes = [Scene.load(name) for name in names]  # every input checked before anything is measured
-    results = []
+    results, skipped = [], []
     with _Progress(not args.quiet and sys.stderr.isatty(), "comparing") as bar:
         for i, scene in enumerate(scenes):
             def status(text, i=i):
                 bar.status(f"[{i + 1}/{len(scenes)}] {text}")
 
-            results.append(compare_scene(scene, levels=args.levels, fidelity=args.fidelity, rays=args.rays,
-                                         points=args.points,
-                                         ray_count=args.ray_count, rounds=args.rounds,
-                                         min_time=args.min_time, progress=bar,
-                                         status=status, **src))
+            try:
+                results.append(compare_scene(scene, levels=args.levels, fidelity=args.fidelity, rays=args.rays,
+                                             points=args.points, ray_count=args.ray_count, rounds=args.rounds,
+                                             min_time=args.min_time, progress=bar, status=status, **src))
+            except UserError as exc:  # a scene whose grids cannot be built: the others still count
+                if len(scenes) == 1:
+                    raise
+                skipped.append(str(exc))
+    for reason in skipped:
+        print(f"calibrate: warning: skipped {reason}", file=sys.stderr)
+    if not results:
+        raise UserError("no scene could be measured: " + "; ".join(skipped))
     summary = summarise(results)
     if args.plot:
         plot(results, Path(args.plot))
     if args.json:
-        sys.stdout.write(json.dumps(dict(scenes=results, summary=summary), indent=2, allow_nan=False) + "\n")
+        sys.stdout.write(json.dumps(dict(scenes=results, summary=summary, skipped=skipped), indent=2, allow_nan=False) + "\n")
         return 0
     _print_human(results, summary, args.plot)
     return 0

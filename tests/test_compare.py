@@ -43,7 +43,7 @@ def short_run(tmp_path_factory):
 def test_json_has_every_field(short_run):
     code, doc, _ = short_run
     assert code == 0
-    assert set(doc) == {"scenes", "summary"}
+    assert set(doc) == {"scenes", "summary", "skipped"} and doc["skipped"] == []
     (r,) = doc["scenes"]
     for key in SCENE_KEYS:
         assert key in r, key
