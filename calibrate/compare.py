@@ -154,8 +154,12 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
             unique.append(spec)
     say(f"{scene.name}: building {len(unique)} grids")
     o, d = _predict._rays(scene, rays, int(ray_count), RAY_SEED)
-    measured = _sweep.sweep(scene, unique, (o, d), rounds=rounds, min_time=min_time, seed=seed, progress=progress,
-                            status=lambda text: say(f"{scene.name}: {text}"))
+    try:
+        measured = _sweep.sweep(scene, unique, (o, d), rounds=rounds, min_time=min_time, seed=seed,
+                                progress=progress, status=lambda text: say(f"{scene.name}: {text}"),
+                                required=(index[chosen],))
+    except ValueError as exc:
+        raise UserError(f"{scene.name}: the predicted grid cannot be measured ({exc})") from None
     stats = scene.stats
     terms = _predict.analytic_uniform_plan(stats, k, False)[0]["terms"]
     notes = list(k.notes)

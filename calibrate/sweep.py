@@ -297,10 +297,16 @@ def measure_time_per_ray(scene: Scene, spec_or_grid, origins, directions, *, rou
                  mailbox=mailbox, clock=clock)[0]
 
 
+def _skip(out: list, row: dict, i: int, required) -> None:
+    if i in required:
+        raise ValueError(f"grid {i + 1} cannot be measured: {row['skipped']}")
+    out.append(row)
+
+
 def sweep(scene: Scene, specs: Sequence, rays, *, rounds: int = SWEEP_ROUNDS,
           min_time: float = SWEEP_MIN_VALUE_NS * 1e-9, seed: int = 0, mailbox: bool = False,
           clock: str = DEFAULT_CLOCK, progress: Callable[[int, int, str], None] | None = None,
-          status: Callable[[str], None] | None = None) -> list[dict]:
+          status: Callable[[str], None] | None = None, required: Sequence[int] = ()) -> list[dict]:
     """Build, count and time several grids on one ray batch, interleaved.
 
     specs : GridSpecs or built Grids; rays : (origins, directions), (n, 3) each.
@@ -308,6 +314,9 @@ def sweep(scene: Scene, specs: Sequence, rays, *, rounds: int = SWEEP_ROUNDS,
     :func:`calibrate.protocol.measure`, each round in a fresh random order drawn from
     ``seed``.  A spec whose top level exceeds :data:`MAX_SWEEP_CELLS` cells, or whose
     build fails (more than :data:`MAX_SWEEP_MEMORY_BYTES`), gives a dict with ``skipped`` (the reason) and no times.
+
+    ``required`` : indices of specs that must be built: when one is skipped the sweep
+    raises ``ValueError`` at once (before building the rest).
 
     Returns one dict per spec, in order (see :func:`measure_time_per_ray`), each with
     ``spec`` (its :meth:`GridSpec.to_dict`, or None for a Grid).
@@ -333,17 +342,17 @@ def sweep(scene: Scene, specs: Sequence, rays, *, rounds: int = SWEEP_ROUNDS,
             status(f"building {i + 1}/{len(specs)}")
         if isinstance(spec, GridSpec) and spec.top_cells > MAX_SWEEP_CELLS:
             row["skipped"] = f"{spec.top_cells:,} top-level cells exceed the sweep's {MAX_SWEEP_CELLS:,}"
-            out.append(row)
+            _skip(out, row, i, required)
             continue
         if held > MAX_SWEEP_TOTAL_BYTES:
             row["skipped"] = f"the sweep's grids already hold {held / 2**30:.1f} GiB"
-            out.append(row)
+            _skip(out, row, i, required)
             continue
         try:
             grid = _as_grid(scene, spec, mailbox)
         except (ValueError, MemoryError) as exc:
             row["skipped"] = f"not built: {exc}"
-            out.append(row)
+            _skip(out, row, i, required)
             continue
         row["resolution"] = list(grid.resolution)
         row.update(_counts(grid, o, d))

@@ -114,3 +114,13 @@ def test_two_level_sweep_scales_top_and_subgrids():
     tops = [p["resolution"] for p in curve["points"]]
     assert tops[0] < tops[1] < tops[2]
     assert all(p["subgrids"] > 0 for p in curve["points"])
+
+
+def test_a_predicted_grid_over_the_budget_is_one_line_exit_2(monkeypatch, capsys):
+    import calibrate.sweep
+
+    monkeypatch.setattr(calibrate.sweep, "MAX_SWEEP_CELLS", 100)  # cylinder196's prediction has thousands
+    code, out, err = _run(["compare", "cylinder196", "--levels", "1", *SHORT], capsys)
+    assert code == 2 and "predicted grid cannot be measured" in err and err.count("\n") == 1 and out == ""
+    code, out, err = _run(["compare", "cylinder196", "cylinder196", "--levels", "1", *SHORT], capsys)
+    assert code == 2 and "no scene could be measured" in err and out == ""
