@@ -104,14 +104,15 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
                   fidelity: str = "analytic", rays: str = "isotropic", points: int = DEFAULT_POINTS,
                   ray_count: int = DEFAULT_RAY_COUNT,
                   rounds: int = _sweep.SWEEP_ROUNDS, min_time: float = _sweep.SWEEP_MIN_VALUE_NS * 1e-9,
-                  seed: int = 0, progress=None, status=None) -> dict:
+                  seed: int = 0, clock: str = _sweep.DEFAULT_CLOCK, progress=None, status=None) -> dict:
     """Measured sweep, predicted curve and penalties of one scene (module docstring).
 
     scene : Scene, built-in name or mesh path; constants / samples / ratio : as
     :func:`calibrate.predict.predict`; levels : "1" | "2" | "auto"; fidelity : the
     prediction's ("paper" | "analytic" | "simulated"); rays : "isotropic" |
     "camera"; points : sweep points per curve (>= 3); ray_count : rays per batch;
-    rounds, min_time : values per grid and seconds per value.
+    rounds, min_time : values per grid and seconds per value; clock : "thread" (the timing
+    thread's CPU time) or "wall" (the kernel's monotonic clock, as ``calibrate run`` times).
 
     Returns a JSON-ready dict: ``scene``, ``triangles``, ``units``, ``penalty``,
     ``predicted_resolution`` (top level), ``predicted_levels``, ``predicted_time_ns``,
@@ -157,7 +158,7 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
     try:
         measured = _sweep.sweep(scene, unique, (o, d), rounds=rounds, min_time=min_time, seed=seed,
                                 progress=progress, status=lambda text: say(f"{scene.name}: {text}"),
-                                required=(index[chosen],))
+                                required=(index[chosen],), clock=clock)
     except ValueError as exc:
         raise UserError(f"{scene.name}: the predicted grid cannot be measured ({exc})") from None
     stats = scene.stats
@@ -227,7 +228,7 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
     else:
         t_step_ns = None
     return _predict._plain(dict(
-        scene=scene.name, triangles=scene.n_triangles, units=units, fidelity=fidelity, rays=rays,
+        scene=scene.name, triangles=scene.n_triangles, units=units, fidelity=fidelity, rays=rays, clock=clock,
         ray_count=int(ray_count),
         constants=pred["constants"], penalty=_sweep.penalty(mc["median_ns"], t_best),
         predicted_resolution=list(chosen.top), predicted_levels=len(pred["levels"]),
@@ -308,7 +309,7 @@ def plot(results: list[dict], path) -> Path:
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel("cells (all levels)")
-        ax.set_ylabel("ns per ray (thread CPU time)")
+        ax.set_ylabel(f"ns per ray ({'thread CPU' if r.get('clock', 'thread') == 'thread' else 'wall'} time)")
         ax.set_title(f"{r['scene']} ({r['triangles']:,} triangles)", fontsize=10)
         ax.legend(fontsize=6.5, loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=3, frameon=False)
     fig.suptitle("measured (points, MAD bars) and predicted (lines, 95% band) time per ray", fontsize=9)
@@ -375,6 +376,9 @@ def add_parser(sub):
                     help=f"timed values per grid (default {_sweep.SWEEP_ROUNDS})")
     sp.add_argument("--min-time", type=positive_number("--min-time"), default=_sweep.SWEEP_MIN_VALUE_NS * 1e-9,
                     metavar="SECONDS", help=f"shortest timed value (default {_sweep.SWEEP_MIN_VALUE_NS * 1e-9:g} s)")
+    sp.add_argument("--clock", default=_sweep.DEFAULT_CLOCK, choices=_sweep.CLOCKS,
+                    help="thread: the timing thread's CPU time (default; a busy host's waits left out); wall: the "
+                         "kernel's wall clock, as calibrate run times")
     sp.add_argument("--plot", metavar="FILE", help="write a PNG: measured points, predicted curve, choices")
     sp.set_defaults(func=cmd_compare)
     return sp
@@ -404,7 +408,8 @@ def cmd_compare(args) -> int:
             try:
                 results.append(compare_scene(scene, levels=args.levels, fidelity=args.fidelity, rays=args.rays,
                                              points=args.points, ray_count=args.ray_count, rounds=args.rounds,
-                                             min_time=args.min_time, progress=bar, status=status, **src))
+                                             min_time=args.min_time, clock=args.clock, progress=bar,
+                                             status=status, **src))
             except UserError as exc:  # a scene whose grids cannot be built: the others still count
                 if len(scenes) == 1:
                     raise
@@ -417,7 +422,8 @@ def cmd_compare(args) -> int:
     if args.plot:
         plot(results, Path(args.plot))
     if args.json:
-        sys.stdout.write(json.dumps(dict(scenes=results, summary=summary, skipped=skipped), indent=2, allow_nan=False) + "\n")
+        doc = dict(scenes=results, summary=summary, skipped=skipped)
+        sys.stdout.write(json.dumps(doc, indent=2, allow_nan=False) + "\n")
         return 0
     _print_human(results, summary, args.plot)
     return 0
