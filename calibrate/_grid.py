@@ -14,6 +14,7 @@ import math
 import numbers
 import os
 import reprlib
+import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -32,6 +33,8 @@ _INTERSECTOR_ALIASES = {"wt": "watertight", "mt": "moller-trumbore", "moller_tru
 INSERTIONS = {"exact": _kernels.INSERT_EXACT, "bounds": _kernels.INSERT_BOUNDS}
 #: Manta RecursiveGrid's per-level constant: total cells = (8 n)^(3 / (2L + 1 - 2 depth)).
 MANTA_SCALE = 8.0
+#: Clocks :meth:`Grid.timed_batch` can time with: the kernel's monotonic clock, or the thread's CPU time.
+TIMING_CLOCKS = ("wall", "thread")
 #: Cells holding at most this many references keep their list instead of a subgrid.
 DEFAULT_SUBDIVIDE_THRESHOLD = 2
 #: Largest per-axis resolution the nesting rule gives a subgrid.
@@ -157,6 +160,18 @@ def compiled_scene_stats(vertices, faces):
                            n_good=sums["n_good"], aspect_sample=sums["aspect_sample"], watertight=watertight)
 
 
+def triangle_box_overlap(corners, lo, hi) -> np.ndarray:
+    """:func:`models.nested.triangle_box_overlap` computed by the kernels' own test.
+
+    corners (P, 3, 3), lo and hi (P, 3): pair p tests triangle ``corners[p]`` against the
+    closed box ``[lo[p], hi[p]]``; returns (P,) bool.  The grid build uses the same test,
+    so counts planned with it describe the grid the kernels build.
+    """
+    c = np.ascontiguousarray(corners, dtype=np.float64).reshape(-1, 9)
+    return _kernels.triangle_box_overlap_many(c, np.ascontiguousarray(lo, dtype=np.float64),
+                                              np.ascontiguousarray(hi, dtype=np.float64))
+
+
 class Scene:
     """A triangle mesh ready for gridding.
 
@@ -239,10 +254,17 @@ class Scene:
                 return cls(vertices, faces, name=p.name)
             except ValueError as exc:
                 raise ValueError(f"{p}: {exc}") from None
+        if p.suffix.lower() == ".stl":
+            _check_binary_stl_length(p)
         try:
-            loaded = trimesh.load(str(p), force="mesh", process=False)
+            with _quiet_trimesh():
+                loaded = trimesh.load(str(p), force="mesh", process=False)
+        except ImportError as exc:  # a format needing an optional package (pycollada, networkx, ...)
+            raise ValueError(f"{p}: cannot read it as a mesh: trimesh needs an optional package for it "
+                             f"({_reader_detail(exc)})") from None
         except Exception as exc:  # trimesh raises many types for a corrupt file
-            raise ValueError(f"{p}: cannot read it as a mesh ({type(exc).__name__}: {exc})") from None
+            raise ValueError(f"{p}: cannot read it as a mesh; is it corrupt or truncated? "
+                             f"({_reader_detail(exc)})") from None
         if isinstance(loaded, list):
             loaded = [m for m in loaded if hasattr(m, "faces")]
             if not loaded:
@@ -279,6 +301,66 @@ class Scene:
                 f"{spec!r} is neither a mesh file nor a built-in scene; built-in scenes: "
                 f"{', '.join(builtin_names())}")
         return cls.from_file(spec)
+
+
+#: Binary STL layout: an 80-byte header, a uint32 triangle count, 50 bytes per triangle.
+STL_HEADER_BYTES = 84
+STL_TRIANGLE_BYTES = 50
+#: Longest reader message quoted in an error (the rest is cut).
+MAX_DETAIL_CHARS = 80
+
+
+def _check_binary_stl_length(p: Path) -> None:
+    """A binary STL shorter than its header's triangle count says is truncated: say so.
+
+    (trimesh would fall back to reading it as ASCII and fail with an unrelated
+    message.)  An ASCII STL starts with ``solid``; a binary one whose header also
+    starts with ``solid`` is recognised by its exact length.
+    """
+    size = p.stat().st_size
+    with open(p, "rb") as fh:
+        head = fh.read(STL_HEADER_BYTES)
+    if size >= STL_HEADER_BYTES:
+        count = int.from_bytes(head[80:84], "little")
+        expected = STL_HEADER_BYTES + STL_TRIANGLE_BYTES * count
+        if size >= expected:
+            return  # a complete binary STL (trailing bytes are ignored), or ASCII
+    if head.lstrip().lower().startswith(b"solid"):
+        return  # ASCII STL: trimesh reads it and says when it holds no triangles
+    if size < STL_HEADER_BYTES:
+        raise ValueError(f"{p}: truncated binary STL: {size} bytes, but its header alone is "
+                         f"{STL_HEADER_BYTES} bytes")
+    raise ValueError(f"{p}: truncated binary STL: its header announces {count:,} triangles "
+                     f"({expected:,} bytes), but the file has {size:,} bytes")
+
+
+def _reader_detail(exc: BaseException) -> str:
+    """A reader's exception as a short phrase for a one-line message."""
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    if len(text) > MAX_DETAIL_CHARS:
+        text = text[:MAX_DETAIL_CHARS - 3].rstrip() + "..."
+    return f"{type(exc).__name__}: {text}"
+
+
+class _quiet_trimesh:
+    """Hold back trimesh's log records while it reads a file.
+
+    trimesh logs warnings about the files it reads; with no logging configured
+    Python prints them on stderr, where a user mistake must be one line. The
+    error raised afterwards says what went wrong.
+    """
+
+    def __enter__(self):
+        import logging
+
+        self._logger = logging.getLogger("trimesh")
+        self._level = self._logger.level
+        self._logger.setLevel(logging.CRITICAL + 1)
+        return self
+
+    def __exit__(self, *exc):
+        self._logger.setLevel(self._level)
+        return False
 
 
 def _check_rays(origins, directions) -> tuple[np.ndarray, np.ndarray]:
@@ -546,15 +628,32 @@ class Grid:
         loops = _whole_number(loops, "loops", 1, MAX_INT64, "2^63 - 1")
         return _kernels.bench(self._capsule, o, d, loops)
 
-    def timed_batch(self, origins, directions):
-        """A ``run(loops) -> (elapsed_ns, checksum)`` callable for :func:`calibrate.protocol.measure`."""
+    def timed_batch(self, origins, directions, clock: str = "wall"):
+        """A ``run(loops) -> (elapsed_ns, checksum)`` callable for :func:`calibrate.protocol.measure`.
+
+        clock : ``"wall"``, the kernel's own monotonic clock around its loop, or
+            ``"thread"``, the calling thread's CPU time around the same loop (the
+            kernel runs in the calling thread): a value then leaves out the time the
+            thread waited for a core, which on a busy host is most of the noise.
+        """
         o, d = _check_rays(origins, directions)
         cap = self._capsule
+        if clock not in TIMING_CLOCKS:
+            raise ValueError(f"clock must be one of {', '.join(TIMING_CLOCKS)}, got {_show(clock)}")
 
         def run(loops: int):
             return _kernels.bench(cap, o, d, _whole_number(loops, "loops", 1, MAX_INT64, "2^63 - 1"))
 
-        return run
+        if clock == "wall":
+            return run
+        read = time.thread_time_ns
+
+        def run_thread(loops: int):
+            t0 = read()
+            _, checksum = run(loops)
+            return read() - t0, checksum
+
+        return run_thread
 
 
 def brute_force(scene: Scene, origins, directions, intersector: str = "watertight"):

@@ -7,8 +7,8 @@ therefore sees either the old file or the complete new one, never a prefix; a
 failure at any point (disk full, permission, Ctrl-C) removes the temporary file
 and leaves an existing destination untouched.
 
-User mistakes (output path is a directory, directory missing or read-only)
-raise :class:`UserError`, a ``ValueError`` the CLI prints as one line before
+User mistakes (output path is a directory or a write-protected file, directory
+missing or read-only) raise :class:`UserError`, a ``ValueError`` the CLI prints as one line before
 exiting with status 2.
 """
 
@@ -19,7 +19,7 @@ import os
 import tempfile
 from pathlib import Path
 
-__all__ = ["UserError", "atomic_write_bytes", "atomic_write_text"]
+__all__ = ["UserError", "atomic_write_bytes", "atomic_write_text", "check_writable"]
 
 # Permission bits of a newly created file before the umask is applied, as
 # open(2) uses for an ordinary `open(path, "w")`.
@@ -48,6 +48,54 @@ def _check_destination(path: Path) -> None:
         raise UserError(f"cannot write {path}: directory {parent} does not exist")
     if not parent.is_dir():
         raise UserError(f"cannot write {path}: {parent} is not a directory")
+    if path.exists() and _write_protected(path):
+        raise UserError(f"cannot write {path}: the file is read-only; make it writable or choose another name")
+
+
+def _write_protected(path: Path) -> bool:
+    """An existing file nobody may write (no w permission bits), or one this user may not write.
+
+    The permission bits are read, not only access(2): a rename replaces a file with
+    the directory's permission alone, and root passes every access check, so an
+    atomic write would otherwise replace a write-protected file silently.
+    """
+    try:
+        mode = path.stat().st_mode
+    except OSError:
+        return False
+    return (mode & 0o222) == 0 or not os.access(path, os.W_OK)
+
+
+def check_writable(path) -> Path:
+    """Check before any long work that ``path`` can be written; return it as a Path.
+
+    The same checks as :func:`atomic_write_bytes` (a directory, a missing or
+    non-directory parent, a write-protected file), then a probe: a temporary file
+    is created in the destination's directory and removed at once, so a
+    read-only directory or file system is reported before anything is measured,
+    fitted or drawn. Nothing is left behind. Raises :class:`UserError`.
+    """
+    path = Path(os.fspath(path))
+    _check_destination(path)
+    fd, tmp_name = _make_temp(path)
+    os.close(fd)
+    try:
+        os.unlink(tmp_name)
+    except FileNotFoundError:
+        pass
+    return path
+
+
+def _make_temp(path: Path) -> tuple[int, str]:
+    """mkstemp beside ``path``; a failure is a UserError naming the directory."""
+    parent = path.parent
+    try:
+        return tempfile.mkstemp(dir=parent, prefix=f".{path.name}.", suffix=".tmp")
+    except PermissionError as exc:
+        raise UserError(f"cannot write {path}: directory {parent} is not writable") from exc
+    except OSError as exc:
+        reason = "read-only file system" if exc.errno == errno.EROFS else (exc.strerror or str(exc))
+        raise UserError(f"cannot write {path}: {reason}") from exc
 
 
 def atomic_write_bytes(path, data: bytes) -> Path:
@@ -66,12 +114,7 @@ def atomic_write_bytes(path, data: bytes) -> Path:
     data = bytes(data)
     _check_destination(path)
     parent = path.parent
-    try:
-        fd, tmp_name = tempfile.mkstemp(dir=parent, prefix=f".{path.name}.", suffix=".tmp")
-    except PermissionError as exc:
-        raise UserError(f"cannot write {path}: directory {parent} is not writable") from exc
-    except OSError as exc:
-        raise UserError(f"cannot write {path}: {exc.strerror or exc}") from exc
+    fd, tmp_name = _make_temp(path)
     tmp = Path(tmp_name)
     try:
         try:

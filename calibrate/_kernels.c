@@ -414,6 +414,43 @@ static PyObject *py_triangle_box_overlap(PyObject *self, PyObject *args)
     return PyBool_FromLong(gc_triangle_box_overlap(v[0], v[1], v[2], v[3], v[4]));
 }
 
+/* triangle_box_overlap_many(corners (P, 9), lo (P, 3), hi (P, 3)) -> (P,) bool: pair p tests
+ * the triangle corners[p] against the box [lo[p], hi[p]] (models.nested's vectorised test). */
+static PyObject *py_triangle_box_overlap_many(PyObject *self, PyObject *args)
+{
+    (void)self;
+    PyObject *tobj, *lobj, *hobj;
+    if (!PyArg_ParseTuple(args, "OOO", &tobj, &lobj, &hobj)) {
+        return NULL;
+    }
+    PyArrayObject *t = (PyArrayObject *)PyArray_FROM_OTF(tobj, NPY_FLOAT64, NPY_ARRAY_IN_ARRAY);
+    PyArrayObject *lo = t ? as_rows3(lobj, NPY_FLOAT64, "lo") : NULL;
+    PyArrayObject *hi = lo ? as_rows3(hobj, NPY_FLOAT64, "hi") : NULL;
+    if (!hi) {
+        Py_XDECREF(t), Py_XDECREF(lo);
+        return NULL;
+    }
+    npy_intp n = PyArray_DIM(lo, 0);
+    if (PyArray_NDIM(t) != 2 || PyArray_DIM(t, 1) != 9 || PyArray_DIM(t, 0) != n || PyArray_DIM(hi, 0) != n) {
+        PyErr_SetString(PyExc_ValueError, "corners must have shape (n, 9) and lo, hi shape (n, 3)");
+        Py_DECREF(t), Py_DECREF(lo), Py_DECREF(hi);
+        return NULL;
+    }
+    PyArrayObject *out = (PyArrayObject *)PyArray_SimpleNew(1, &n, NPY_BOOL);
+    if (out) {
+        const double *tv = PyArray_DATA(t), *l = PyArray_DATA(lo), *h = PyArray_DATA(hi);
+        npy_bool *o = PyArray_DATA(out);
+        Py_BEGIN_ALLOW_THREADS
+        for (npy_intp p = 0; p < n; ++p) {
+            const double *c = tv + 9 * p;
+            o[p] = (npy_bool)gc_triangle_box_overlap(c, c + 3, c + 6, l + 3 * p, h + 3 * p);
+        }
+        Py_END_ALLOW_THREADS
+    }
+    Py_DECREF(t), Py_DECREF(lo), Py_DECREF(hi);
+    return (PyObject *)out;
+}
+
 static PyObject *py_mesh_sums(PyObject *self, PyObject *args)
 {
     (void)self;
@@ -515,6 +552,8 @@ static PyMethodDef methods[] = {
      "brute_force(vertices, faces, intersector, origins, directions) -> (t, prim)"},
     {"triangle_box_overlap", py_triangle_box_overlap, METH_VARARGS,
      "triangle_box_overlap(v0, v1, v2, lo, hi) -> bool"},
+    {"triangle_box_overlap_many", py_triangle_box_overlap_many, METH_VARARGS,
+     "triangle_box_overlap_many(corners (n, 9), lo (n, 3), hi (n, 3)) -> (n,) bool"},
     {"mesh_sums", py_mesh_sums, METH_VARARGS,
      "mesh_sums(vertices, faces, stride) -> dict of the scene sums (models.stats)"},
     {"mesh_watertight", py_mesh_watertight, METH_VARARGS, "mesh_watertight(vertices, faces) -> bool"},

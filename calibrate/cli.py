@@ -42,11 +42,22 @@ def _console(stderr: bool = False):
     return Console(file=stream, highlight=False, width=None if stream.isatty() else PIPE_WIDTH)
 
 
+def _stderr_is_tty() -> bool:
+    try:
+        return sys.stderr.isatty()
+    except (AttributeError, ValueError):  # a replaced or closed stream
+        return False
+
+
 class _Progress:
-    """A rich progress bar on stderr, fed by ``progress(done, total, label)`` callbacks."""
+    """A rich progress bar on stderr, fed by ``progress(done, total, label)`` callbacks.
+
+    Drawn only when ``enabled`` and stderr is a terminal: a log file or a pipe gets
+    no bar (and a caller reading stderr sees only warnings and errors).
+    """
 
     def __init__(self, enabled: bool, description: str):
-        self.enabled = enabled
+        self.enabled = enabled and _stderr_is_tty()
         self.description = description
         self._bar = None
         self._task = None
@@ -88,6 +99,17 @@ def positive_number(what: str = "the value"):
         return x
 
     return parse
+
+
+def seed_number(text: str) -> int:
+    """An argparse type: a random seed, a whole number from 0 to 2^32 - 1."""
+    try:
+        x = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"the seed must be a whole number, got {text!r}") from None
+    if not 0 <= x < 2**32:
+        raise argparse.ArgumentTypeError(f"the seed must be from 0 to 2^32 - 1, got {text!r}")
+    return x
 
 
 def _print_json(obj) -> None:
@@ -160,12 +182,13 @@ def cmd_run(args) -> int:
 
 def cmd_fit(args) -> int:
     from . import calfile
+    from ._io import check_writable
 
     src = Path(args.file)
     cal = calfile.load(src)
+    out = check_writable(Path(args.out) if args.out else src)  # before fitting, not after
     with _Progress(not args.quiet, "fitting") as _:
         new = calfile.refit(cal, seed=args.seed)
-    out = Path(args.out) if args.out else src
     calfile.save(out, new)
     if args.json:
         _print_json(dict(constants=new["constants"], out=str(out)))
@@ -180,8 +203,11 @@ def cmd_show(args) -> int:
 
     cal = calfile.load(Path(args.file))
     if args.plot:
-        from .plots import calibration_plots
+        from ._io import check_writable
+        from .plots import calibration_plots, plot_paths
 
+        for path in plot_paths(Path(args.plot)):  # both, before drawing: never one plot of two
+            check_writable(path)
         written = calibration_plots(cal, Path(args.plot))
     else:
         written = []
@@ -260,14 +286,14 @@ def build_parser() -> argparse.ArgumentParser:
                     help="stop once r's 95%% interval, relative to its median, is narrower than W (default 0.06)")
     sp.add_argument("--out", default=DEFAULT_CALIBRATION, metavar="FILE", help="calibration file to write")
     sp.add_argument("--intersector", default="watertight", choices=["watertight", "moller-trumbore"])
-    sp.add_argument("--seed", type=int, default=0)
+    sp.add_argument("--seed", type=seed_number, default=0)
     sp.add_argument("--resume", action="store_true", help="continue an interrupted run from FILE.partial")
     sp.set_defaults(func=cmd_run)
 
     sp = verb("fit", "re-fit a calibration file's stored measurements without measuring again")
     sp.add_argument("file", nargs="?", default=DEFAULT_CALIBRATION)
     sp.add_argument("--out", metavar="FILE", help="write here instead of replacing FILE")
-    sp.add_argument("--seed", type=int, default=0)
+    sp.add_argument("--seed", type=seed_number, default=0)
     sp.set_defaults(func=cmd_fit)
 
     sp = verb("show", "print a calibration's constants; --plot writes a corner plot and residuals")
@@ -278,13 +304,21 @@ def build_parser() -> argparse.ArgumentParser:
     sp = verb("scenes", "list the built-in scenes with their statistics")
     sp.set_defaults(func=cmd_scenes)
 
+    from . import bench as _bench
     from . import compare as _compare
     from . import export as _export
+    from . import paper as _paper
     from . import predict as _predict
+    from . import render as _render
+    from . import tradeoff as _tradeoff
 
     _predict.add_parser(sub)
     _export.add_parser(sub)
+    _render.add_parser(sub)
+    _paper.add_parser(sub)
+    _bench.add_parser(sub)
     _compare.add_parser(sub)
+    _tradeoff.add_parser(sub)
     return p
 
 

@@ -96,9 +96,14 @@ def residuals(cal: dict, path: Path) -> Path:
     return out
 
 
-def calibration_plots(cal: dict, prefix: Path) -> list[Path]:
-    """Write PREFIX-corner.png and PREFIX-residuals.png; returns their paths."""
+def plot_paths(prefix: Path) -> tuple[Path, Path]:
+    """The two files :func:`calibration_plots` writes for ``prefix``: (corner, residuals)."""
     prefix = Path(prefix)
     base = prefix.name[:-4] if prefix.suffix == ".png" else prefix.name
-    return [corner(cal, prefix.with_name(base + "-corner.png")),
-            residuals(cal, prefix.with_name(base + "-residuals.png"))]
+    return prefix.with_name(base + "-corner.png"), prefix.with_name(base + "-residuals.png")
+
+
+def calibration_plots(cal: dict, prefix: Path) -> list[Path]:
+    """Write PREFIX-corner.png and PREFIX-residuals.png; returns their paths."""
+    corner_path, residuals_path = plot_paths(prefix)
+    return [corner(cal, corner_path), residuals(cal, residuals_path)]

@@ -50,7 +50,7 @@ from models.portable import paper_k, paper_level_cells
 from models.stats import scene_class, triangle_geometry
 from models.uncertainty import posterior_optimum, summarise
 
-from ._grid import Grid, Scene
+from ._grid import Grid, Scene, triangle_box_overlap
 from ._io import UserError
 
 FIDELITIES = ("paper", "analytic", "simulated")
@@ -410,7 +410,8 @@ def _nested_plan(scene, stats, k: Constants, L):
         if i not in memo:
             try:
                 c = nested_counts(geom, stats.box_lo, stats.box_hi, _scaled(centre, scales[i]), L, k.ratio,
-                                  overlap=overlap, corners=corners, leaves="analytic")
+                                  overlap=overlap, corners=corners, leaves="analytic",
+                                  overlap_test=triangle_box_overlap)
                 memo[i] = (k.cost(c.steps, c.tests, c.subgrids), c)
             except TooManyPairs:
                 memo[i] = (math.inf, None)
@@ -609,7 +610,7 @@ def _kernel_subgrid_resolutions(scene, stats, counts, overlap):
     enumerates them (bounding-box candidates, then the separating-axis test for exact
     overlap); their order is the flat cell index, the order of the plan's subgrids.
     """
-    from models.nested import _enumerate_pairs, triangle_box_overlap  # the same enumeration: rows line up
+    from models.nested import _enumerate_pairs  # the same enumeration: rows line up
 
     geom, corners = _geometry(scene)
     top = np.asarray(counts.top_resolution, dtype=np.int64)
@@ -754,17 +755,56 @@ def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analyt
     if "simulation" in plan:
         out["simulation"] = plan["simulation"]
     out["timing_s"] = time.perf_counter() - t0
-    return _plain(out)
+    return json_ready(out)
 
 
-def _plain(x):
+def recommended_grid(scene, *, constants=None, samples=None, ratio=None, levels="auto", mailbox=False):
+    """The analytic fidelity's recommended grid, built in the kernel.
+
+    Same plan as :func:`predict` with ``fidelity="analytic"`` (and the same arguments):
+    ``levels="1"`` gives the uniform recommendation, ``"auto"`` the nested one (which may
+    be a single level when no deeper grid is predicted to pay).  A nested plan is built
+    with its top resolution and its per-cell depth-1 subgrid resolutions; deeper levels
+    follow the kernel's rule.
+
+    Returns ``(grid, plan)``: a :class:`calibrate._grid.Grid` and a dict with ``levels``
+    (the number of levels), ``resolution`` (top [nx, ny, nz]), ``predict_s`` (seconds to
+    plan, scene statistics included unless already cached) and ``build_s`` (seconds to
+    build).
+    """
+    levels = _check_choice("levels", levels, LEVEL_CHOICES)
+    if not isinstance(mailbox, (bool, np.bool_)):
+        raise ValueError(f"mailbox must be True or False, got {mailbox!r}")
+    k = resolve_constants(constants, samples, ratio)
+    if not isinstance(scene, Scene):
+        scene = Scene.load(scene)
+    t0 = time.perf_counter()
+    plan, _ = _analytic_plan(scene, scene_statistics(scene), k, levels, bool(mailbox))
+    n_levels = len(plan["levels"])
+    sub = None
+    if n_levels > 1:
+        counts = plan["counts"]
+        sub = _kernel_subgrid_resolutions(scene, scene.stats, counts, plan["overlap"])
+        top = _res_list(counts.top_resolution)
+    else:
+        top = _res_list(plan["levels"][0]["resolution"])
+    t1 = time.perf_counter()
+    if n_levels > 1:
+        grid = Grid.nested(scene, levels=n_levels, resolution=top, subgrid_resolutions=sub, mailbox=bool(mailbox))
+    else:
+        grid = Grid.uniform(scene, top, mailbox=bool(mailbox))
+    t2 = time.perf_counter()
+    return grid, dict(levels=n_levels, resolution=top, predict_s=t1 - t0, build_s=t2 - t1)
+
+
+def json_ready(x):
     """numpy scalars/arrays and tuples -> JSON types; non-finite floats -> None."""
     if isinstance(x, dict):
-        return {str(key): _plain(v) for key, v in x.items()}
+        return {str(key): json_ready(v) for key, v in x.items()}
     if isinstance(x, (list, tuple)):
-        return [_plain(v) for v in x]
+        return [json_ready(v) for v in x]
     if isinstance(x, np.ndarray):
-        return _plain(x.tolist())
+        return json_ready(x.tolist())
     if isinstance(x, (bool, np.bool_)):
         return bool(x)
     if isinstance(x, (int, np.integer)):
@@ -778,6 +818,9 @@ def _plain(x):
 # ---------------------------------------------------------------------------------------
 # command line
 # ---------------------------------------------------------------------------------------
+
+_plain = json_ready  # the names render and paper import
+
 
 def add_parser(sub):
     """Register the ``predict`` verb on an argparse subparsers object; returns its parser."""
@@ -802,7 +845,9 @@ def add_parser(sub):
     return sp
 
 
-def _constants_from_args(args) -> dict:
+def constants_from_args(args) -> dict:
+    """The constants source of a verb's ``--ratio`` / ``--calibration`` arguments (``ratio=`` or
+    ``samples=`` and ``constants=`` for :func:`predict`); no calibration file raises UserError."""
     if getattr(args, "ratio", None) is not None:
         return dict(ratio=args.ratio)
     path = Path(args.calibration) if getattr(args, "calibration", None) else Path(DEFAULT_CALIBRATION)
@@ -817,15 +862,24 @@ def _constants_from_args(args) -> dict:
                 constants={f"{n}_ns": getattr(k, n) for n in ("t_setup", "t_step", "t_int", "t_sub")})
 
 
+_constants_from_args = constants_from_args  # the name render and paper import
+
+
 def cmd_predict(args) -> int:
     """Run the ``predict`` verb: JSON on stdout with ``--json``, else rich tables."""
     import json
     import sys
 
-    src = _constants_from_args(args)
+    from .cli import _stderr_is_tty
+
+    src = constants_from_args(args)
     scene = Scene.load(args.mesh)
+    try:  # a scene the statistics reject fails here, naming the file, before any progress line
+        scene.stats  # noqa: B018
+    except ValueError as exc:
+        raise UserError(f"{scene.name}: {exc}") from None
     slow = args.fidelity == "simulated" or (args.levels != "1" and args.fidelity == "analytic")
-    if slow and not args.quiet and not args.json:
+    if slow and not args.quiet and not args.json and _stderr_is_tty():
         print(f"predicting ({args.fidelity}) for {scene.name} ({scene.n_triangles:,} triangles) ...",
               file=sys.stderr)
     result = predict(scene, fidelity=args.fidelity, levels=args.levels, rays=args.rays, mailbox=args.mailbox, **src)

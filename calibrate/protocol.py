@@ -263,6 +263,8 @@ def timer_info() -> dict:
           ``time.perf_counter_ns()`` reads (an empirical upper bound on the
           granularity; it includes the interpreter's call overhead);
       perf_counter_impl : the implementation Python reports for perf_counter;
+      thread_clock_getres_ns : CLOCK_THREAD_CPUTIME_ID resolution (the clock of
+          timing_clock "thread"), or None where unavailable;
       resolution_ns : the larger of the two, used for the too-short check.
     """
     getres_ns = None
@@ -271,6 +273,12 @@ def timer_info() -> dict:
             getres_ns = float(time.clock_getres(time.CLOCK_MONOTONIC) * 1e9)
         except OSError:
             getres_ns = None
+    thread_ns = None
+    if hasattr(time, "clock_getres") and hasattr(time, "CLOCK_THREAD_CPUTIME_ID"):
+        try:
+            thread_ns = float(time.clock_getres(time.CLOCK_THREAD_CPUTIME_ID) * 1e9)
+        except OSError:
+            thread_ns = None
     read = time.perf_counter_ns
     stamps = [read() for _ in range(TIMER_PROBE_READS)]
     deltas = [b - a for a, b in zip(stamps, stamps[1:]) if b > a]
@@ -281,6 +289,7 @@ def timer_info() -> dict:
         "clock_getres_ns": getres_ns,
         "perf_counter_step_ns": step_ns,
         "perf_counter_impl": info.implementation,
+        "thread_clock_getres_ns": thread_ns,
         "resolution_ns": max(max(known), 1.0),
     }
 

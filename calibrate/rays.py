@@ -19,6 +19,10 @@ empty mesh, ...). The same arguments give bit-identical arrays.
     Pinhole-camera primary rays looking at the box centre from outside.
 ``surface``
     Ambient-occlusion-style rays leaving area-uniform points of a mesh.
+``aimed_at_edges``
+    Rays from inside a closed mesh aimed exactly at its vertices and edges,
+    where a non-watertight triangle test lets rays slip through (these
+    directions are ``target - origin``, not unit length, so t = 1 at the target).
 
 ``RAY_SETS`` maps a name to a generator with the common signature
 ``(vertices, faces, n, seed) -> (origins, directions)`` (the box is the
@@ -43,6 +47,8 @@ __all__ = [
     "camera",
     "camera_grid",
     "surface",
+    "aimed_at_edges",
+    "unique_edges",
     "mesh_bounds",
 ]
 
@@ -100,9 +106,32 @@ def _check_box(lo, hi) -> tuple[np.ndarray, np.ndarray]:
     return lo, hi
 
 
+def _extent(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """hi - lo, (3,); a box wider than float64 can hold raises ValueError."""
+    with np.errstate(over="ignore"):
+        d = hi - lo
+    if not np.all(np.isfinite(d)):
+        raise ValueError(f"box is too wide for float64: lo={lo.tolist()}, hi={hi.tolist()}")
+    return d
+
+
+def _diagonal(lo: np.ndarray, hi: np.ndarray) -> float:
+    """|hi - lo| without overflow or underflow of the squares (any finite box)."""
+    d = np.abs(_extent(lo, hi))
+    scale = float(d.max())
+    return scale * float(np.linalg.norm(d / scale)) if scale > 0 else 0.0
+
+
 def _face_areas(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Area of one box face perpendicular to each axis, (3,)."""
-    d = hi - lo
+    """Area of one box face perpendicular to each axis, (3,), in units of the largest extent squared.
+
+    Relative, so the areas (and the face probabilities made from them) neither
+    overflow for boxes of 1e200 nor underflow for boxes of 1e-200.
+    """
+    d = _extent(lo, hi)
+    scale = float(d.max())
+    if scale > 0:
+        d = d / scale
     return np.array([d[1] * d[2], d[0] * d[2], d[0] * d[1]])
 
 
@@ -222,8 +251,12 @@ def isotropic(
     directions[rows, (axis + 1) % 3] = local[:, 0]
     directions[rows, (axis + 2) % 3] = local[:, 1]
     directions = _normalise(directions)
-    margin = margin_fraction * np.linalg.norm(hi - lo)
-    origins = points - margin * directions
+    margin = margin_fraction * _diagonal(lo, hi)
+    with np.errstate(over="ignore", invalid="ignore"):
+        origins = points - margin * directions
+    if not np.all(np.isfinite(origins)):
+        raise ValueError(f"box is too close to float64's limit for rays from outside it: lo={lo.tolist()}, "
+                         f"hi={hi.tolist()}")
     return np.ascontiguousarray(origins), np.ascontiguousarray(directions)
 
 
@@ -236,7 +269,7 @@ def _camera_frame(lo, hi, view_direction, fov_deg):
     if not (np.isfinite(fov_deg) and 0 < fov_deg < 180):
         raise ValueError(f"fov_deg must be in (0, 180), got {fov_deg}")
     fwd = fwd / np.linalg.norm(fwd)
-    radius = 0.5 * np.linalg.norm(hi - lo)
+    radius = 0.5 * _diagonal(lo, hi)
     if not radius > 0:
         raise ValueError(f"box is a single point (lo = hi = {lo.tolist()}); a camera cannot frame it")
     half = np.radians(fov_deg) / 2.0
@@ -374,9 +407,57 @@ def surface(vertices, faces, n: int, seed, side: str = "random") -> Rays:
     t, bt_ = _orthonormal_basis(normal)
     directions = _normalise(local[:, 0:1] * t + local[:, 1:2] * bt_ + local[:, 2:3] * normal)
     lo, hi = v.min(axis=0), v.max(axis=0)
-    offset = SURFACE_OFFSET_FRACTION_OF_DIAGONAL * np.linalg.norm(hi - lo)
+    offset = SURFACE_OFFSET_FRACTION_OF_DIAGONAL * _diagonal(lo, hi)
     origins = points + offset * normal
     return np.ascontiguousarray(origins), np.ascontiguousarray(directions)
+
+
+def unique_edges(faces) -> np.ndarray:
+    """(E, 2) int64 undirected edges of a triangle mesh, each once (smaller index first)."""
+    f = np.asarray(faces, dtype=np.int64)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    return np.unique(np.sort(e, axis=1), axis=0)
+
+
+def aimed_at_edges(vertices, faces, n_edge_points: int, seed, origin_radius: float = 0.1, centre=(0.0, 0.0, 0.0)):
+    """Rays from inside a closed mesh aimed exactly at every vertex, every edge midpoint and random edge points.
+
+    After pbrt-v4's ``Triangle.Watertight`` test.  Origins are uniform in the ball of
+    ``origin_radius`` about ``centre``, which must lie inside the (star-shaped) mesh;
+    targets are every vertex once, every edge's midpoint once and ``n_edge_points``
+    uniformly random points on uniformly random edges -- the places where a
+    non-watertight ray/triangle test lets a ray slip between two triangles.  A ray
+    that hits nothing has leaked.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float64; faces : (F, 3) int64, a closed mesh around ``centre``.
+    n_edge_points : int >= 0; seed : int >= 0 or a numpy Generator.
+
+    Returns
+    -------
+    origins : (n, 3) float64; directions : (n, 3) float64 = target - origin (not unit
+    length: t = 1 at the target); kind : (n,) str array, 'vertex', 'midpoint' or 'edge point'.
+    n = V + E + n_edge_points.
+    """
+    v, f = _check_mesh(vertices, faces)
+    if isinstance(n_edge_points, (bool, np.bool_)) or not isinstance(n_edge_points, (int, np.integer)) \
+            or n_edge_points < 0:
+        raise ValueError(f"n_edge_points must be a non-negative integer, got {n_edge_points!r}")
+    if not (np.isfinite(origin_radius) and origin_radius >= 0):
+        raise ValueError(f"origin_radius must be a finite number >= 0, got {origin_radius!r}")
+    rng = _rng(seed)
+    edges = unique_edges(f)
+    a, b = v[edges[:, 0]], v[edges[:, 1]]
+    pick = rng.integers(0, len(edges), int(n_edge_points))
+    s = rng.random((int(n_edge_points), 1))
+    targets = np.concatenate([v, 0.5 * (a + b), a[pick] + s * (b[pick] - a[pick])])
+    kind = np.array(["vertex"] * len(v) + ["midpoint"] * len(edges) + ["edge point"] * len(pick))
+    n = len(targets)
+    u = rng.normal(size=(n, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    origins = np.asarray(centre, dtype=np.float64) + origin_radius * np.cbrt(rng.random((n, 1))) * u
+    return np.ascontiguousarray(origins), np.ascontiguousarray(targets - origins), kind
 
 
 # ----------------------------------------------------------------------------------

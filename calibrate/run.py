@@ -26,7 +26,7 @@ import numpy as np
 
 from . import calfile, suites
 from . import fit as _fit
-from ._io import UserError, atomic_write_text
+from ._io import UserError, atomic_write_text, check_writable
 from ._grid import intersector_code
 from .host import fingerprint
 from .protocol import Measurement, MeasurementInterrupted, measure, pin_to_one_core
@@ -46,6 +46,9 @@ WARMUPS = 1
 HOLDOUT_FRACTION = 0.2
 #: Share of the budget kept for fitting after the last stage.
 FIT_RESERVE_S = 6.0
+#: Shortest budget accepted, seconds: the fitting reserve plus a few seconds of measuring
+#: (the first stage times every configuration FIRST_ROUNDS times).
+MIN_BUDGET_S = FIT_RESERVE_S + 4.0
 #: Constants whose in-context fit borrows a prior from the isolating suites: set-up
 #: and subgrid entry are a few per cent of a real batch, too little for the batches
 #: alone to pin them; the isolating suites measure them directly.
@@ -55,6 +58,24 @@ ISOLATED_PRIOR_SIGMA_LOG = 0.3
 #: Partial-file format marker.
 PARTIAL_FORMAT = "gridcal-partial-run"
 PARTIAL_VERSION = 1
+
+
+@dataclass
+class Stage:
+    """The state of a run after one stage's fit (what :func:`run_calibration` passes ``on_stage``).
+
+    stage : 1-based stage number; rounds : values requested per configuration so far;
+    elapsed_s : wall time since the run started (building, measuring and every fit so far);
+    values : timed values over all configurations; result : the stage's :class:`calibrate.fit.FitResult`
+    (in-context fit); ratio_rel_width : full width of r's 95% interval over its median.
+    """
+
+    stage: int
+    rounds: int
+    elapsed_s: float
+    values: int
+    result: object
+    ratio_rel_width: float
 
 
 @dataclass
@@ -203,22 +224,36 @@ def _isolated_fit(recs, seed):
 def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
                     target_rel_width: float | None = DEFAULT_TARGET_REL_WIDTH,
                     intersector: str = "watertight", seed: int = 0, resume: bool = False,
-                    progress=None, status=None) -> RunResult:
+                    progress=None, status=None, on_stage=None) -> RunResult:
     """Measure, fit, validate on held-back configurations, and save ``out`` atomically.
 
     progress(done, total, label) reports measuring; status(text) reports stages.
+    on_stage(stage) is called after every stage's fit with a :class:`Stage` (the
+    posterior a run stopping there would have); a true return value ends measuring
+    there, as a reached target would (``calibrate tradeoff`` reads one long run's
+    stages as the runs of shorter budgets).
     Raises UserError for bad arguments, MeasurementInterrupted (after saving the
     partial file) on Ctrl-C, and fit errors when the data cannot be fitted.
     """
     if not (isinstance(budget_s, (int, float)) and math.isfinite(budget_s) and budget_s > 0):
         raise UserError(f"--budget must be a positive number of seconds, got {budget_s!r}")
+    if budget_s < MIN_BUDGET_S:
+        raise UserError(f"--budget {budget_s:g} s is too short: a run needs at least {MIN_BUDGET_S:g} s "
+                        f"({FIT_RESERVE_S:g} s of it for fitting)")
     if target_rel_width is not None and not (math.isfinite(target_rel_width) and target_rel_width > 0):
         raise UserError(f"--target-rel-width must be a positive number, got {target_rel_width!r}")
+    if not (isinstance(seed, int) and 0 <= seed < 2**32):
+        raise UserError(f"--seed must be a whole number from 0 to 2^32 - 1, got {seed!r}")
     intersector_code(intersector)  # validates the name
+    # Every input and destination is checked before anything is built or measured.
+    out = check_writable(out)
+    part = partial_path(out)
+    if resume and not part.exists():
+        raise UserError(f"{part}: no interrupted run to resume (run without --resume to start one)")
+    check_writable(part)
     status = status or (lambda text: None)
     t_start = time.monotonic()
     deadline = t_start + budget_s
-    part = partial_path(out)
     warnings: list = []
 
     with pin_to_one_core() as pin:
@@ -253,6 +288,10 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
                 raise UserError(f"the measurements could not be fitted within the budget: {exc}") from None
             width = _rel_width(result)
             enough = target_rel_width is None or width <= target_rel_width
+            if on_stage is not None and on_stage(Stage(
+                    stage=stage, rounds=rounds, elapsed_s=time.monotonic() - t_start, result=result,
+                    values=sum(len(m.values_ns) for m in timings.values()), ratio_rel_width=width)):
+                enough = True
             if enough or time.monotonic() >= deadline - FIT_RESERVE_S:
                 if not enough:
                     warnings.append(f"budget spent: r's 95% interval is {100 * width:.1f}% of its median wide, "
@@ -283,7 +322,8 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
                     rays_per_batch=suites.RAYS_PER_BATCH, min_value_ns=MIN_VALUE_NS)
         from ._kernels import CFLAGS
 
-        cal = calfile.from_fit(result, fingerprint=fingerprint(extra={"kernel_build": CFLAGS}),
+        cal = calfile.from_fit(result, fingerprint=fingerprint(
+            extra={"kernel_build": CFLAGS, "timing_clock": suites.TIMING_CLOCK}),
                                measurements=recs, isolated=isolated, meta=meta)
         calfile.save(out, cal)
         if part.exists():

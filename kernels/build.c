@@ -12,6 +12,7 @@
  * a grid that would pass the memory limit is refused with a message.
  */
 #include "gc_internal.h"
+#include "overlap.h"
 
 #include <float.h>
 #include <stdio.h>
@@ -108,7 +109,7 @@ static void cell_box(const gc_node *nd, int32_t x, int32_t y, int32_t z, double 
         double a = nd->lo[i] + (double)c[i] * nd->cell[i];
         double b = (c[i] + 1 == nd->n[i]) ? nd->hi[i] : nd->lo[i] + (double)(c[i] + 1) * nd->cell[i];
         double w = GC_CELL_WIDEN_FRACTION * nd->cell[i] +
-                   GC_CELL_WIDEN_ULPS * DBL_EPSILON * fmax(fabs(a), fabs(b));
+                   GC_CELL_WIDEN_ULPS * DBL_EPSILON * GC_MAX(fabs(a), fabs(b));
         lo[i] = a - w;
         hi[i] = b + w;
     }
@@ -182,76 +183,153 @@ static void scratch_free(builder *b, void *p, size_t bytes)
     b->scratch -= bytes;
 }
 
+/* Double the pair scratch (the rare path of collect_pairs). */
+static gc_status grow_pairs(builder *b, pair **pairs, int64_t *cap)
+{
+    if ((uint64_t)*cap >= GC_MAX_REFS) {
+        gc_set_error(b->err,
+                     "more than %llu triangle references in one grid level: "
+                     "the resolution is too fine for 32-bit reference offsets",
+                     (unsigned long long)GC_MAX_REFS);
+        return GC_ERR_OVERFLOW;
+    }
+    int64_t cap2 = *cap * 2;
+    size_t grow = (size_t)(cap2 - *cap) * sizeof(pair);
+    gc_status st = check_memory(b, grow, "the triangle references");
+    if (st != GC_OK) {
+        return st;
+    }
+    pair *p2 = realloc(*pairs, (size_t)cap2 * sizeof(pair));
+    if (!p2) {
+        gc_set_error(b->err, "out of memory recording triangle references");
+        return GC_ERR_NO_MEMORY;
+    }
+    b->scratch += grow;
+    *pairs = p2;
+    *cap = cap2;
+    return GC_OK;
+}
+
 /* Record every (cell, triangle) pair of node `nd`.  *pairs_out is scratch of
- * *cap_out entries (release with scratch_free). */
+ * *cap_out entries (release with scratch_free).  The widened cell bounds, centres
+ * and half sizes along each axis are tabulated once per node (cell_box). */
 static gc_status collect_pairs(builder *b, const gc_node *nd, const uint32_t *prims, int64_t n_prims,
                                pair **pairs_out, int64_t *n_out, int64_t *cap_out)
 {
     int64_t n = 0, cap = n_prims > 0 ? n_prims : 1;
     gc_status st;
-    pair *pairs = scratch_alloc(b, (size_t)cap * sizeof(pair), "the triangle references", &st);
-    if (!pairs) {
+    const int exact = b->p->insertion == GC_INSERT_EXACT;
+    const int64_t n_axis = (int64_t)nd->n[0] + nd->n[1] + nd->n[2];
+    const size_t tab_bytes = exact ? (size_t)n_axis * 4 * sizeof(double) : 0;
+    double *tab = exact ? scratch_alloc(b, tab_bytes, "the cell bounds", &st) : NULL;
+    if (exact && !tab) {
         return st;
     }
-    const int exact = b->p->insertion == GC_INSERT_EXACT;
+    pair *pairs = scratch_alloc(b, (size_t)cap * sizeof(pair), "the triangle references", &st);
+    if (!pairs) {
+        if (tab) {
+            scratch_free(b, tab, tab_bytes);
+        }
+        return st;
+    }
+    /* tab: per axis i, from base[i], the cells' widened lo, hi, centre and half size */
+    const double *clo[3], *chi[3], *cmid[3], *chalf[3];
+    if (exact) {
+        int64_t base = 0;
+        for (int i = 0; i < 3; ++i) {
+            double *lo = tab + base, *hi = lo + n_axis, *mid = hi + n_axis, *half = mid + n_axis;
+            for (int32_t c = 0; c < nd->n[i]; ++c) {
+                int32_t xyz[3] = {0, 0, 0};
+                double l3[3], h3[3];
+                xyz[i] = c;
+                cell_box(nd, xyz[0], xyz[1], xyz[2], l3, h3);
+                lo[c] = l3[i];
+                hi[c] = h3[i];
+                mid[c] = 0.5 * (l3[i] + h3[i]);
+                half[c] = 0.5 * (h3[i] - l3[i]);
+            }
+            clo[i] = lo, chi[i] = hi, cmid[i] = mid, chalf[i] = half;
+            base += nd->n[i];
+        }
+    }
+    const int64_t nx = nd->n[0], nxy = (int64_t)nd->n[0] * nd->n[1];
     for (int64_t k = 0; k < n_prims; ++k) {
         const gc_tri *t = &b->g->tris[prims[k]];
         int32_t r0[3], r1[3];
+        double bmin[3], bmax[3];
+        int spread = 0; /* axes along which the bounds span several cells or leave the node */
         for (int i = 0; i < 3; ++i) {
-            double a = fmin(t->v0[i], fmin(t->v1[i], t->v2[i]));
-            double c = fmax(t->v0[i], fmax(t->v1[i], t->v2[i]));
+            double a = GC_MIN(t->v0[i], GC_MIN(t->v1[i], t->v2[i]));
+            double c = GC_MAX(t->v0[i], GC_MAX(t->v1[i], t->v2[i]));
+            bmin[i] = a;
+            bmax[i] = c;
             double w = GC_CELL_WIDEN_FRACTION * nd->cell[i] +
-                       GC_CELL_WIDEN_ULPS * DBL_EPSILON * fmax(fabs(a), fabs(c));
+                       GC_CELL_WIDEN_ULPS * DBL_EPSILON * GC_MAX(fabs(a), fabs(c));
             axis_range(nd, i, a - w, c + w, &r0[i], &r1[i]);
+            spread += (r0[i] != r1[i]) | (a - w < nd->lo[i]) | (c + w > nd->hi[i]);
         }
-        const int single = r0[0] == r1[0] && r0[1] == r1[1] && r0[2] == r1[2];
-        for (int32_t z = r0[2]; z <= r1[2]; ++z) {
-            for (int32_t y = r0[1]; y <= r1[1]; ++y) {
-                for (int32_t x = r0[0]; x <= r1[0]; ++x) {
-                    if (exact && !single) {
-                        double clo[3], chi[3];
-                        cell_box(nd, x, y, z, clo, chi);
-                        if (!gc_triangle_box_overlap(t->v0, t->v1, t->v2, clo, chi)) {
+        const int64_t span = (int64_t)(r1[0] - r0[0] + 1) * (r1[1] - r0[1] + 1) * (r1[2] - r0[2] + 1);
+        /* Bounds in one cell, or in one row of cells whose cross-section holds
+         * them: the triangle lies inside the (widened) row, and being connected it
+         * meets every widened cell of the row that its bounds meet, so of the
+         * separating-axis test only the bounds comparison (the box axes) can
+         * reject a cell of the row. */
+        if (span == 1 || spread <= 1 || !exact) { /* every cell of the bounds */
+            const int row = exact && span > 1;
+            while (n + span > cap) {
+                if ((st = grow_pairs(b, &pairs, &cap)) != GC_OK) {
+                    goto fail;
+                }
+            }
+            for (int32_t z = r0[2]; z <= r1[2]; ++z) {
+                for (int32_t y = r0[1]; y <= r1[1]; ++y) {
+                    for (int32_t x = r0[0]; x <= r1[0]; ++x) {
+                        if (row && ((bmin[0] > chi[0][x]) | (bmax[0] < clo[0][x]) | (bmin[1] > chi[1][y]) |
+                                    (bmax[1] < clo[1][y]) | (bmin[2] > chi[2][z]) | (bmax[2] < clo[2][z]))) {
                             continue;
                         }
+                        pairs[n].cell = (uint32_t)(x + nx * y + nxy * z);
+                        pairs[n].prim = prims[k];
+                        ++n;
                     }
-                    if (n == cap) {
-                        if ((uint64_t)n >= GC_MAX_REFS) {
-                            gc_set_error(b->err,
-                                         "more than %llu triangle references in one grid level: "
-                                         "the resolution is too fine for 32-bit reference offsets",
-                                         (unsigned long long)GC_MAX_REFS);
-                            scratch_free(b, pairs, (size_t)cap * sizeof(pair));
-                            return GC_ERR_OVERFLOW;
-                        }
-                        int64_t cap2 = cap * 2;
-                        size_t grow = (size_t)(cap2 - cap) * sizeof(pair);
-                        st = check_memory(b, grow, "the triangle references");
-                        if (st != GC_OK) {
-                            scratch_free(b, pairs, (size_t)cap * sizeof(pair));
-                            return st;
-                        }
-                        pair *p2 = realloc(pairs, (size_t)cap2 * sizeof(pair));
-                        if (!p2) {
-                            gc_set_error(b->err, "out of memory recording triangle references");
-                            scratch_free(b, pairs, (size_t)cap * sizeof(pair));
-                            return GC_ERR_NO_MEMORY;
-                        }
-                        b->scratch += grow;
-                        pairs = p2;
-                        cap = cap2;
+                }
+            }
+            continue;
+        }
+        gc_tri_box_prep prep;
+        gc_tri_box_prepare(&prep, t->v0, t->v1, t->v2);
+        for (int32_t z = r0[2]; z <= r1[2]; ++z) {
+            const double lo2 = clo[2][z], hi2 = chi[2][z], m2 = cmid[2][z], h2 = chalf[2][z];
+            for (int32_t y = r0[1]; y <= r1[1]; ++y) {
+                const double lo1 = clo[1][y], hi1 = chi[1][y], m1 = cmid[1][y], h1 = chalf[1][y];
+                for (int32_t x = r0[0]; x <= r1[0]; ++x) {
+                    if (!gc_tri_box_prepared_overlap(&prep, clo[0][x], lo1, lo2, chi[0][x], hi1, hi2,
+                                                     cmid[0][x], m1, m2, chalf[0][x], h1, h2)) {
+                        continue;
                     }
-                    pairs[n].cell = (uint32_t)(x + nd->n[0] * (y + nd->n[1] * z));
+                    if (n == cap && (st = grow_pairs(b, &pairs, &cap)) != GC_OK) {
+                        goto fail;
+                    }
+                    pairs[n].cell = (uint32_t)(x + nx * y + nxy * z);
                     pairs[n].prim = prims[k];
                     ++n;
                 }
             }
         }
     }
+    if (tab) {
+        scratch_free(b, tab, tab_bytes);
+    }
     *pairs_out = pairs;
     *n_out = n;
     *cap_out = cap;
     return GC_OK;
+fail:
+    scratch_free(b, pairs, (size_t)cap * sizeof(pair));
+    if (tab) {
+        scratch_free(b, tab, tab_bytes);
+    }
+    return st;
 }
 
 /* Resolution of the subgrid for local cell `c` of node `nd` (depth `depth`), or
@@ -382,10 +460,12 @@ static gc_status build_node(builder *b, const uint32_t *prims, int64_t n_prims, 
                 st = GC_ERR_OVERFLOW;
                 break;
             }
-            st = reserve(b, (void **)&g->refs, &b->cap_refs, g->n_refs + count, sizeof(uint32_t),
-                         "the triangle references");
-            if (st != GC_OK) {
-                break;
+            if (g->n_refs + count > b->cap_refs) {
+                st = reserve(b, (void **)&g->refs, &b->cap_refs, g->n_refs + count, sizeof(uint32_t),
+                             "the triangle references");
+                if (st != GC_OK) {
+                    break;
+                }
             }
             if (count > 0) {
                 memcpy(g->refs + g->n_refs, sorted + off[c], (size_t)count * sizeof(uint32_t));
@@ -543,9 +623,14 @@ gc_status gc_grid_build(const gc_mesh *mesh, const gc_build_params *params, gc_g
             }
         }
     } else {
-        st = gc_mesh_box(mesh, lo, hi, err);
-        if (st != GC_OK) {
-            return st;
+        gc_mesh_box_checked(mesh, lo, hi); /* gc_check_mesh refused a mesh without faces */
+    }
+    /* Cell sizes and cell indices divide by the extent: an extent that overflows to
+     * inf would turn them into NaN and the cell index into anything. */
+    for (int i = 0; i < 3; ++i) {
+        if (!isfinite(hi[i] - lo[i])) {
+            gc_set_error(err, "the grid box is too wide for double precision: its extent on axis %d overflows", i);
+            return GC_ERR_ARGUMENT;
         }
     }
 

@@ -31,9 +31,14 @@
 #define GC_PREFETCH(p) ((void)(p))
 #endif
 
+/* Minimum and maximum of finite values, inlined (fmin/fmax are library calls). */
+#define GC_MIN(a, b) ((a) < (b) ? (a) : (b))
+#define GC_MAX(a, b) ((a) > (b) ? (a) : (b))
+
 typedef struct {
     double v0[3], v1[3], v2[3];
 } gc_tri; /* 72 bytes */
+
 
 typedef struct {
     uint32_t begin; /* first reference, or the subgrid's node index */
@@ -122,6 +127,9 @@ GC_INLINE void gc_ray_prepare(gc_ray *r, const double *o, const double *d)
 
 /* Validate a mesh: positive counts, indices in range, finite vertices used by faces. */
 gc_status gc_check_mesh(const gc_mesh *mesh, int allow_empty, char *err);
+
+/* gc_mesh_box for a mesh gc_check_mesh has accepted. */
+void gc_mesh_box_checked(const gc_mesh *mesh, double lo[3], double hi[3]);
 
 /* Validate rays: finite origins, finite non-zero directions. */
 gc_status gc_check_rays(int64_t n, const double *origins, const double *directions, char *err);

@@ -101,7 +101,8 @@ gc_status gc_check_mesh(const gc_mesh *mesh, int allow_empty, char *err)
             return GC_ERR_ARGUMENT;
         }
         const double *p = mesh->vertices + 3 * v;
-        if (!isfinite(p[0]) || !isfinite(p[1]) || !isfinite(p[2])) {
+        /* x - x is 0 for a finite x and NaN for an infinite or NaN one */
+        if (!((p[0] - p[0]) + (p[1] - p[1]) + (p[2] - p[2]) == 0.0)) {
             gc_set_error(err, "vertex %lld (used by face %lld) is not finite", (long long)v,
                          (long long)(k / 3));
             return GC_ERR_ARGUMENT;
@@ -116,22 +117,28 @@ gc_status gc_mesh_box(const gc_mesh *mesh, double lo[3], double hi[3], char *err
     if (st != GC_OK) {
         return st;
     }
-    for (int i = 0; i < 3; ++i) {
-        lo[i] = INFINITY;
-        hi[i] = -INFINITY;
-    }
-    /* only vertices that faces use define the box */
-    for (int64_t f = 0; f < mesh->n_faces; ++f) {
-        for (int k = 0; k < 3; ++k) {
-            const double *v = mesh->vertices + 3 * mesh->faces[3 * f + k];
-            for (int i = 0; i < 3; ++i) {
-                lo[i] = fmin(lo[i], v[i]);
-                hi[i] = fmax(hi[i], v[i]);
-            }
-        }
-    }
-    gc_widen_box(lo, hi);
+    gc_mesh_box_checked(mesh, lo, hi);
     return GC_OK;
+}
+
+void gc_mesh_box_checked(const gc_mesh *mesh, double lo[3], double hi[3])
+{
+    double l0 = INFINITY, l1 = INFINITY, l2 = INFINITY;
+    double h0 = -INFINITY, h1 = -INFINITY, h2 = -INFINITY;
+    /* only vertices that faces use define the box */
+    const int64_t *f = mesh->faces;
+    for (int64_t k = 0; k < 3 * mesh->n_faces; ++k) {
+        const double *v = mesh->vertices + 3 * f[k];
+        l0 = GC_MIN(l0, v[0]);
+        l1 = GC_MIN(l1, v[1]);
+        l2 = GC_MIN(l2, v[2]);
+        h0 = GC_MAX(h0, v[0]);
+        h1 = GC_MAX(h1, v[1]);
+        h2 = GC_MAX(h2, v[2]);
+    }
+    lo[0] = l0, lo[1] = l1, lo[2] = l2;
+    hi[0] = h0, hi[1] = h1, hi[2] = h2;
+    gc_widen_box(lo, hi);
 }
 
 void gc_grid_free(gc_grid *grid)

@@ -58,88 +58,110 @@ static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *
     }
     /* The walk keeps its state in scalars and picks the next axis without a
      * branch: which axis a ray crosses next is a coin toss for the branch
-     * predictor, and a mispredicted step would cost more than the step itself. */
+     * predictor, and a mispredicted step would cost more than the step itself.
+     * The ray and the best hit are local copies, so the compiler keeps them in
+     * registers instead of reloading them after every store of a hit. */
+    const gc_ray ray = *r;
+    double best_t = hit->t;
+    int32_t best_prim = hit->prim;
     int32_t cx = c[0], cy = c[1], cz = c[2];
     const int32_t ux = stride[0] > 0 ? 1 : -1, uy = stride[1] > 0 ? 1 : -1, uz = stride[2] > 0 ? 1 : -1;
+    const int64_t sx = stride[0], sy = stride[1], sz = stride[2];
+    const double dtx = dt[0], dty = dt[1], dtz = dt[2];
+    const int32_t stopx = stop[0], stopy = stop[1], stopz = stop[2];
     double tx = t_next[0], ty = t_next[1], tz = t_next[2];
     int64_t idx = (int64_t)gc_cell_index(nd, cx, cy, cz);
     const int64_t first = (int64_t)nd->first_cell;
     const int64_t end = first + axis_stride[2] * (int64_t)nd->n[2];
+    const gc_cell *cells = g->cells;
+    const uint32_t *refs = g->refs;
+    const gc_tri *ref_tris = g->ref_tris;
     double t_enter = ta;
     for (;;) {
         double t_axis = tx < ty ? tx : ty;
         t_axis = t_axis < tz ? t_axis : tz;
         const double t_exit = t_axis < tb ? t_axis : tb;
-        const gc_cell cell = g->cells[idx];
+        const gc_cell cell = cells[idx];
 #if GC_TW_COUNT
         cnt->steps++;
 #endif
-        {
-            /* The next cell along the ray, and the first of its triangles, start
-             * loading while this cell is tested: a cell's triangles lie at a place
-             * in memory nothing else predicts, and waiting for them made an
-             * occupied cell cost several empty ones. */
-            const int px = (tx <= ty) & (tx <= tz);
-            const int py = !px & (ty <= tz);
-            const int pz = !px & !py;
-            const int64_t next = idx + ((-(int64_t)px & stride[0]) | (-(int64_t)py & stride[1]) |
-                                        (-(int64_t)pz & stride[2]));
-            if (next >= first && next < end) {
-                const gc_cell nc = g->cells[next];
-                if (nc.count != GC_CELL_SUBGRID) {
-                    GC_PREFETCH(g->ref_tris + nc.begin);
-                }
-            }
-        }
-        if (cell.count == GC_CELL_SUBGRID) {
-#if GC_TW_COUNT
-            cnt->subgrids++;
-            GC_TW_NAME(walk)(g, &g->nodes[cell.begin], r, t_enter, t_exit, hit, mail, cnt);
-#else
-            GC_TW_NAME(walk)(g, &g->nodes[cell.begin], r, t_enter, t_exit, hit, mail);
-#endif
-        } else {
-            const uint32_t *ref = g->refs + cell.begin;
-            const gc_tri *tri = g->ref_tris + cell.begin;
-            for (uint32_t k = 0; k < cell.count; ++k) {
-                const uint32_t prim = ref[k];
-                if (mail) {
-                    if (mail->stamp[prim] == mail->ray) {
-                        continue;
-                    }
-                    mail->stamp[prim] = mail->ray;
-                }
-#if GC_TW_COUNT
-                cnt->tests++;
-#endif
-                double t;
-                if (GC_TW_ISECT(r, &tri[k], hit->t, &t)) {
-                    hit->t = t;
-                    hit->prim = (int32_t)prim;
-                }
-            }
-        }
-        if (hit->t <= t_exit || !(t_exit < tb)) {
-            return;
-        }
         /* the axis whose boundary comes first (ties: any of them is right), as
-         * all-ones/all-zeros masks so the update below has no branch */
+         * all-ones/all-zeros masks so that the step has no branch */
         const int ax = (tx <= ty) & (tx <= tz);
         const int ay = !ax & (ty <= tz);
         const int az = !ax & !ay;
         const int64_t mx = -(int64_t)ax, my = -(int64_t)ay, mz = -(int64_t)az;
+        const int64_t next = idx + ((mx & sx) | (my & sy) | (mz & sz));
+        /* The next cell along the ray, and the first of its triangles, start
+         * loading while this cell is tested: a cell's triangles lie at a place
+         * in memory nothing else predicts, and waiting for them made an
+         * occupied cell cost several empty ones. */
+        if (next >= first && next < end) {
+            const gc_cell nc = cells[next];
+            if (nc.count != GC_CELL_SUBGRID) {
+                GC_PREFETCH(ref_tris + nc.begin);
+            }
+        }
+        if (cell.count == GC_CELL_SUBGRID) {
+            hit->t = best_t;
+            hit->prim = best_prim;
+#if GC_TW_COUNT
+            cnt->subgrids++;
+            GC_TW_NAME(walk)(g, &g->nodes[cell.begin], &ray, t_enter, t_exit, hit, mail, cnt);
+#else
+            GC_TW_NAME(walk)(g, &g->nodes[cell.begin], &ray, t_enter, t_exit, hit, mail);
+#endif
+            best_t = hit->t;
+            best_prim = hit->prim;
+        } else {
+            const uint32_t *ref = refs + cell.begin;
+            const gc_tri *tri = ref_tris + cell.begin;
+            if (mail) {
+                for (uint32_t k = 0; k < cell.count; ++k) {
+                    const uint32_t prim = ref[k];
+                    if (mail->stamp[prim] == mail->ray) {
+                        continue;
+                    }
+                    mail->stamp[prim] = mail->ray;
+#if GC_TW_COUNT
+                    cnt->tests++;
+#endif
+                    double t;
+                    if (GC_TW_ISECT(&ray, &tri[k], best_t, &t)) {
+                        best_t = t;
+                        best_prim = (int32_t)prim;
+                    }
+                }
+            } else {
+                for (uint32_t k = 0; k < cell.count; ++k) {
+#if GC_TW_COUNT
+                    cnt->tests++;
+#endif
+                    double t;
+                    if (GC_TW_ISECT(&ray, &tri[k], best_t, &t)) {
+                        best_t = t;
+                        best_prim = (int32_t)ref[k];
+                    }
+                }
+            }
+        }
+        if (best_t <= t_exit || !(t_exit < tb)) {
+            break;
+        }
         cx += (int32_t)(mx & ux);
         cy += (int32_t)(my & uy);
         cz += (int32_t)(mz & uz);
-        idx += (mx & stride[0]) | (my & stride[1]) | (mz & stride[2]);
-        tx += (double)ax * dt[0];
-        ty += (double)ay * dt[1];
-        tz += (double)az * dt[2];
-        if ((cx == stop[0]) | (cy == stop[1]) | (cz == stop[2])) {
-            return;
+        idx = next;
+        tx += (double)ax * dtx;
+        ty += (double)ay * dty;
+        tz += (double)az * dtz;
+        if ((cx == stopx) | (cy == stopy) | (cz == stopz)) {
+            break;
         }
         t_enter = t_axis;
     }
+    hit->t = best_t;
+    hit->prim = best_prim;
 }
 
 /* First hit of one prepared ray. */

@@ -21,34 +21,30 @@
 /* Moller and Trumbore, "Fast, minimum storage ray-triangle intersection",
  * JGT 2(1) 1997.  Not watertight: rays through shared edges or vertices can
  * slip between the two triangles when rounding disagrees. */
-GC_INLINE int gc_isect_moller_trumbore(const gc_ray *r, const gc_tri *tri, double t_max,
-                                       double *t_out)
+/* The rest of the Moller-Trumbore test for a candidate inside the triangle's
+ * edges: depth, determinant bound and t.  Out of line, like the watertight
+ * test's; the values it forms again come from the same operations. */
+#if defined(__GNUC__)
+__attribute__((noinline))
+#endif
+static int gc_isect_moller_trumbore_finish(const gc_ray *r, const gc_tri *tri, double sgn, double adet,
+                                           double t_max, double *t_out)
 {
     const double *v0 = tri->v0, *v1 = tri->v1, *v2 = tri->v2;
-    double e1[3] = {v1[0] - v0[0], v1[1] - v0[1], v1[2] - v0[2]};
-    double e2[3] = {v2[0] - v0[0], v2[1] - v0[1], v2[2] - v0[2]};
-    double p[3] = {r->d[1] * e2[2] - r->d[2] * e2[1], r->d[2] * e2[0] - r->d[0] * e2[2],
-                   r->d[0] * e2[1] - r->d[1] * e2[0]};
-    double det = e1[0] * p[0] + e1[1] * p[1] + e1[2] * p[2];
-    double s[3] = {r->o[0] - v0[0], r->o[1] - v0[1], r->o[2] - v0[2]};
-    double q[3] = {s[1] * e1[2] - s[2] * e1[1], s[2] * e1[0] - s[0] * e1[2],
-                   s[0] * e1[1] - s[1] * e1[0]};
-    /* Barycentrics and t scaled by det, compared with det's sign folded in, so
-     * the test divides only on a hit and decides everything without a branch:
-     * whether a test hits is unpredictable, and a mispredicted branch costs as
-     * much as the test. */
-    const double sgn = det < 0.0 ? -1.0 : 1.0;
-    const double adet = det * sgn;
-    const double u = (s[0] * p[0] + s[1] * p[1] + s[2] * p[2]) * sgn;
-    const double v = (r->d[0] * q[0] + r->d[1] * q[1] + r->d[2] * q[2]) * sgn;
+    const double e1[3] = {v1[0] - v0[0], v1[1] - v0[1], v1[2] - v0[2]};
+    const double e2[3] = {v2[0] - v0[0], v2[1] - v0[1], v2[2] - v0[2]};
+    const double s[3] = {r->o[0] - v0[0], r->o[1] - v0[1], r->o[2] - v0[2]};
+    const double q[3] = {s[1] * e1[2] - s[2] * e1[1], s[2] * e1[0] - s[0] * e1[2],
+                         s[0] * e1[1] - s[1] * e1[0]};
     const double tt = (e2[0] * q[0] + e2[1] * q[1] + e2[2] * q[2]) * sgn;
+    if (!((tt > 0.0) & (tt < t_max * adet))) {
+        return 0;
+    }
     /* det = e1 . (d x e2): its rounding is bounded by the magnitudes of every product in it */
     const double mag = (fabs(e1[0]) + fabs(e1[1]) + fabs(e1[2])) *
                        (fabs(r->d[0]) + fabs(r->d[1]) + fabs(r->d[2])) *
                        (fabs(e2[0]) + fabs(e2[1]) + fabs(e2[2]));
-    const int ok = (adet > GC_DET_ULPS * mag) & (u >= 0.0) & (v >= 0.0) & (u + v <= adet) & (tt > 0.0) &
-                   (tt < t_max * adet);
-    if (!ok) {
+    if (!(adet > GC_DET_ULPS * mag)) {
         return 0;
     }
     const double t = tt / adet;
@@ -59,6 +55,37 @@ GC_INLINE int gc_isect_moller_trumbore(const gc_ray *r, const gc_tri *tri, doubl
     return 1;
 }
 
+GC_INLINE int gc_isect_moller_trumbore(const gc_ray *r, const gc_tri *tri, double t_max,
+                                       double *t_out)
+{
+    const double *v0 = tri->v0, *v1 = tri->v1, *v2 = tri->v2;
+    const double e1[3] = {v1[0] - v0[0], v1[1] - v0[1], v1[2] - v0[2]};
+    const double e2[3] = {v2[0] - v0[0], v2[1] - v0[1], v2[2] - v0[2]};
+    const double p[3] = {r->d[1] * e2[2] - r->d[2] * e2[1], r->d[2] * e2[0] - r->d[0] * e2[2],
+                         r->d[0] * e2[1] - r->d[1] * e2[0]};
+    const double det = e1[0] * p[0] + e1[1] * p[1] + e1[2] * p[2];
+    const double s[3] = {r->o[0] - v0[0], r->o[1] - v0[1], r->o[2] - v0[2]};
+    /* Barycentrics and t scaled by det, compared with det's sign folded in, so
+     * nothing divides before a hit.  The cheap range tests come first and reject
+     * most candidates; depth and the determinant's rounding bound, which needs
+     * every magnitude, are formed only for a candidate that passed them
+     * (gc_isect_moller_trumbore_finish).  The verdict is the same conjunction
+     * in any order. */
+    const double sgn = det < 0.0 ? -1.0 : 1.0;
+    const double adet = det * sgn;
+    const double u = (s[0] * p[0] + s[1] * p[1] + s[2] * p[2]) * sgn;
+    if (!((u >= 0.0) & (u <= adet))) {
+        return 0;
+    }
+    const double q[3] = {s[1] * e1[2] - s[2] * e1[1], s[2] * e1[0] - s[0] * e1[2],
+                         s[0] * e1[1] - s[1] * e1[0]};
+    const double v = (r->d[0] * q[0] + r->d[1] * q[1] + r->d[2] * q[2]) * sgn;
+    if (!((v >= 0.0) & (u + v <= adet))) {
+        return 0;
+    }
+    return gc_isect_moller_trumbore_finish(r, tri, sgn, adet, t_max, t_out);
+}
+
 /* Woop, Benthin and Wald, "Watertight Ray/Triangle Intersection", JCGT 2(1)
  * 2013.  Vertices are translated to the ray origin and sheared so the ray runs
  * along +z; the 2D edge functions U, V, W of a shared edge are then computed
@@ -67,40 +94,45 @@ GC_INLINE int gc_isect_moller_trumbore(const gc_ray *r, const gc_tri *tri, doubl
  * paper's fallback for an exactly zero edge function is not needed: zero is
  * handled consistently by the inclusive sign test.  Requires -ffp-contract=off
  * (a fused multiply-add would break the negation symmetry). */
-GC_INLINE int gc_isect_watertight(const gc_ray *r, const gc_tri *tri, double t_max,
-                                  double *t_out)
+/* The rest of the watertight test, for a ray whose line passes through the
+ * triangle (same sign of U, V, W): depth, determinant bound and t.  Kept out of
+ * line so the common rejection stays short; the sheared coordinates are formed
+ * again by the same operations, so they are the same values. */
+#if defined(__GNUC__)
+__attribute__((noinline))
+#endif
+static int gc_isect_watertight_finish(const gc_ray *r, const gc_tri *tri, double u, double v, double w,
+                                      double t_max, double *t_out)
 {
     const int kx = r->kx, ky = r->ky, kz = r->kz;
-    double a[3] = {tri->v0[0] - r->o[0], tri->v0[1] - r->o[1], tri->v0[2] - r->o[2]};
-    double b[3] = {tri->v1[0] - r->o[0], tri->v1[1] - r->o[1], tri->v1[2] - r->o[2]};
-    double c[3] = {tri->v2[0] - r->o[0], tri->v2[1] - r->o[1], tri->v2[2] - r->o[2]};
-    double ax = a[kx] - r->sx * a[kz], ay = a[ky] - r->sy * a[kz];
-    double bx = b[kx] - r->sx * b[kz], by = b[ky] - r->sy * b[kz];
-    double cx = c[kx] - r->sx * c[kz], cy = c[ky] - r->sy * c[kz];
-    double u = cx * by - cy * bx;
-    double v = ax * cy - ay * cx;
-    double w = bx * ay - by * ax;
-    double det = u + v + w;
+    const double sx = r->sx, sy = r->sy;
+    const double a_x = tri->v0[kx] - r->o[kx], a_y = tri->v0[ky] - r->o[ky], a_z = tri->v0[kz] - r->o[kz];
+    const double b_x = tri->v1[kx] - r->o[kx], b_y = tri->v1[ky] - r->o[ky], b_z = tri->v1[kz] - r->o[kz];
+    const double c_x = tri->v2[kx] - r->o[kx], c_y = tri->v2[ky] - r->o[ky], c_z = tri->v2[kz] - r->o[kz];
+    const double ax = a_x - sx * a_z, ay = a_y - sy * a_z;
+    const double bx = b_x - sx * b_z, by = b_y - sy * b_z;
+    const double cx = c_x - sx * c_z, cy = c_y - sy * c_z;
+    const double det = u + v + w;
+    const double az = r->sz * a_z, bz = r->sz * b_z, cz = r->sz * c_z;
+    const double tt = u * az + v * bz + w * cz;
+    /* det's sign folded into T, so that nothing divides before a hit */
+    const double sgn = det < 0.0 ? -1.0 : 1.0;
+    const double adet = det * sgn;
+    const double ts = tt * sgn;
+    if (!((ts > 0.0) & (ts < t_max * adet))) {
+        return 0;
+    }
     /* Rounding bound of det.  Each sheared coordinate (e.g. ax = a[kx] - sx a[kz])
      * carries an error of about one ulp of the magnitudes it was made from
      * (max_ = |a[kx]| + |sx a[kz]|), which can exceed what is left of it after
      * cancellation; a product p q then errs by about m_p |q| + |p| m_q. */
-    const double max_ = fabs(a[kx]) + fabs(r->sx * a[kz]), may = fabs(a[ky]) + fabs(r->sy * a[kz]);
-    const double mbx = fabs(b[kx]) + fabs(r->sx * b[kz]), mby = fabs(b[ky]) + fabs(r->sy * b[kz]);
-    const double mcx = fabs(c[kx]) + fabs(r->sx * c[kz]), mcy = fabs(c[ky]) + fabs(r->sy * c[kz]);
+    const double max_ = fabs(a_x) + fabs(sx * a_z), may = fabs(a_y) + fabs(sy * a_z);
+    const double mbx = fabs(b_x) + fabs(sx * b_z), mby = fabs(b_y) + fabs(sy * b_z);
+    const double mcx = fabs(c_x) + fabs(sx * c_z), mcy = fabs(c_y) + fabs(sy * c_z);
     const double mag = mcx * fabs(by) + fabs(cx) * mby + mcy * fabs(bx) + fabs(cy) * mbx + max_ * fabs(cy) +
                        fabs(ax) * mcy + may * fabs(cx) + fabs(ay) * mcx + mbx * fabs(ay) + fabs(bx) * may +
                        mby * fabs(ax) + fabs(by) * max_;
-    double az = r->sz * a[kz], bz = r->sz * b[kz], cz = r->sz * c[kz];
-    double tt = u * az + v * bz + w * cz;
-    /* The paper's sign tests, with det's sign folded into T so that nothing
-     * divides before a hit and nothing branches before the verdict. */
-    const double sgn = det < 0.0 ? -1.0 : 1.0;
-    const double adet = det * sgn;
-    const double ts = tt * sgn;
-    const int inside = ((u >= 0.0) & (v >= 0.0) & (w >= 0.0)) | ((u <= 0.0) & (v <= 0.0) & (w <= 0.0));
-    const int ok = inside & (adet > GC_DET_ULPS * mag) & (ts > 0.0) & (ts < t_max * adet);
-    if (!ok) {
+    if (!(adet > GC_DET_ULPS * mag)) {
         return 0;
     }
     const double t = ts / adet;
@@ -109,6 +141,28 @@ GC_INLINE int gc_isect_watertight(const gc_ray *r, const gc_tri *tri, double t_m
     }
     *t_out = t;
     return 1;
+}
+
+GC_INLINE int gc_isect_watertight(const gc_ray *r, const gc_tri *tri, double t_max, double *t_out)
+{
+    const int kx = r->kx, ky = r->ky, kz = r->kz;
+    const double sx = r->sx, sy = r->sy;
+    /* indexed loads: the permuted coordinates straight from the triangle */
+    const double a_z = tri->v0[kz] - r->o[kz], b_z = tri->v1[kz] - r->o[kz], c_z = tri->v2[kz] - r->o[kz];
+    const double ax = (tri->v0[kx] - r->o[kx]) - sx * a_z, ay = (tri->v0[ky] - r->o[ky]) - sy * a_z;
+    const double bx = (tri->v1[kx] - r->o[kx]) - sx * b_z, by = (tri->v1[ky] - r->o[ky]) - sy * b_z;
+    const double cx = (tri->v2[kx] - r->o[kx]) - sx * c_z, cy = (tri->v2[ky] - r->o[ky]) - sy * c_z;
+    const double u = cx * by - cy * bx;
+    const double v = ax * cy - ay * cx;
+    const double w = bx * ay - by * ax;
+    /* The paper's sign tests first: they reject most candidates, and what
+     * follows (gc_isect_watertight_finish) runs only for a ray that passes
+     * them.  The verdict is the same conjunction in any order. */
+    const int inside = ((u >= 0.0) & (v >= 0.0) & (w >= 0.0)) | ((u <= 0.0) & (v <= 0.0) & (w <= 0.0));
+    if (!inside) {
+        return 0;
+    }
+    return gc_isect_watertight_finish(r, tri, u, v, w, t_max, t_out);
 }
 
 #endif /* GC_TRIANGLE_H */

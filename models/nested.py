@@ -168,7 +168,7 @@ def _vector_resolution(total_cells, extent, max_axis):
 
 
 def nested_counts(geom: TriangleGeometry, box_lo, box_hi, top_resolution, levels, r, *,
-                  overlap="bbox", corners=None, leaves="enumerate") -> NestedCounts:
+                  overlap="bbox", corners=None, leaves="enumerate", overlap_test=None) -> NestedCounts:
     """Build an L-level grid structure from the triangles and return its expected counts.
 
     Parameters
@@ -183,6 +183,8 @@ def nested_counts(geom: TriangleGeometry, box_lo, box_hi, top_resolution, levels
         uses the offset-averaged references of each leaf subgrid's clipped sub-scene
         (:func:`models.general.expected_refs` per subgrid) -- much faster, used while
         searching; ``refs`` is then the expected count.
+    overlap_test : optional drop-in for :func:`triangle_box_overlap` (same arguments and
+        result), e.g. a compiled one; this module stays free of any kernel.
     """
     if leaves not in ("enumerate", "analytic"):
         raise ValueError(f"leaves must be 'enumerate' or 'analytic', got {leaves!r}")
@@ -248,7 +250,7 @@ def nested_counts(geom: TriangleGeometry, box_lo, box_hi, top_resolution, levels
         c_lo = node_lo[node] + ijk * cell[node]
         c_hi = c_lo + cell[node]
         if overlap == "exact":
-            keep = triangle_box_overlap(corners[tri], c_lo, c_hi)
+            keep = (overlap_test or triangle_box_overlap)(corners[tri], c_lo, c_hi)
             tri, node, ijk, c_lo, c_hi = tri[keep], node[keep], ijk[keep], c_lo[keep], c_hi[keep]
         res_n = node_res[node]
         flat = offset[node] + ijk[:, 0] + res_n[:, 0] * (ijk[:, 1] + res_n[:, 1] * ijk[:, 2])

@@ -23,6 +23,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import math
+
 import numpy as np
 
 # --- grid box rule ---------------------------------------------------------------
@@ -34,6 +36,12 @@ MIN_EXTENT_FRACTION = 1e-3
 POINT_SCENE_EXTENT_FRACTION = 1e-6
 #: ... and never below this absolute extent (scene units), so the origin works too.
 MIN_ABSOLUTE_EXTENT = 1e-300
+#: Smallest box volume the statistics accept (the smallest normal double): below it the
+#: volume and the k of the closed forms lose all precision.
+MIN_NORMAL_VOLUME = float(np.finfo(np.float64).tiny)
+#: Extents of a cube whose statistics stay finite and normal (volume and surface), for messages.
+MIN_STATS_EXTENT = 1e-100
+MAX_STATS_EXTENT = 1e100
 
 # --- triangle shape ----------------------------------------------------------------
 #: A triangle is degenerate when 2*area <= this * (longest edge)^2, i.e. its aspect
@@ -100,7 +108,10 @@ def grid_box(lo, hi) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError("box corners contain NaN or Inf")
     if np.any(hi < lo):
         raise ValueError(f"box has hi < lo: lo={lo}, hi={hi}")
-    ext = hi - lo
+    with np.errstate(over="ignore"):
+        ext = hi - lo
+    if not np.all(np.isfinite(ext)):
+        raise ValueError(f"box is too wide for float64: its extent overflows (lo={lo.tolist()}, hi={hi.tolist()})")
     emax = float(ext.max())
     if emax > 0.0:
         width = MIN_EXTENT_FRACTION * emax
@@ -292,8 +303,8 @@ class SceneStats:
 
 def box_volume_surface(extent) -> tuple[float, float]:
     """(V, S) of a box with extents (3,) (units^3, units^2)."""
-    d = np.asarray(extent, dtype=np.float64)
-    return float(d[0] * d[1] * d[2]), float(2.0 * (d[0] * d[1] + d[1] * d[2] + d[2] * d[0]))
+    d = [float(x) for x in np.asarray(extent, dtype=np.float64).reshape(3)]  # Python floats: inf, no warning
+    return d[0] * d[1] * d[2], 2.0 * (d[0] * d[1] + d[1] * d[2] + d[2] * d[0])
 
 
 def stats_from_geometry(geom: TriangleGeometry, box_lo, box_hi, *, watertight: bool = False,
@@ -409,9 +420,18 @@ def stats_from_sums(*, n_triangles, box_lo, box_hi, e1_axes, e2_axes, perimeters
         ar_med, ar_p95 = (float(x) for x in np.percentile(ar, [50.0, 95.0]))
     else:
         ar_med = ar_p95 = float("inf")
+    tri_extent = np.asarray(box_hi, dtype=np.float64) - np.asarray(box_lo, dtype=np.float64)
+    if not float(tri_extent.max()) > 0.0:
+        raise ValueError("the scene has zero extent: every triangle lies at one point, so there is "
+                         "no space for a grid to divide")
     lo_b, hi_b = grid_box(box_lo, box_hi)
     extent = hi_b - lo_b
     volume, surface = box_volume_surface(extent)
+    if not (MIN_NORMAL_VOLUME <= volume < math.inf and surface < math.inf):
+        which = "small" if volume < MIN_NORMAL_VOLUME else "large"
+        raise ValueError(f"the scene is too {which} for its statistics in double precision (extent "
+                         f"{float(extent.max()):.3g}: its box volume {'underflows' if which == 'small' else 'overflows'}); "
+                         f"scale the mesh to an extent between {MIN_STATS_EXTENT:g} and {MAX_STATS_EXTENT:g}")
     e1 = np.asarray(e1_axes, dtype=np.float64)
     e2 = np.asarray(e2_axes, dtype=np.float64)
     e2_total = float(e2.sum())

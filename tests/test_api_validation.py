@@ -218,7 +218,7 @@ BAD_FILES = [
     ("bad_magic.ply", "plx\nformat ascii 1.0\nend_header\n", r"cannot read it as a mesh.*ply"),
     ("truncated_binary.stl",
      b"\0" * STL_HEADER_BYTES + (5).to_bytes(4, "little") + b"\0" * (STL_TRIANGLE_BYTES // 2),
-     r"holds no triangles|cannot read it as a mesh"),
+     r"truncated binary STL: its header announces 5 triangles \(334 bytes\), but the file has 109 bytes"),
     ("no_triangles.stl", b"\0" * STL_HEADER_BYTES + (0).to_bytes(4, "little"), r"holds no triangles"),
     ("truncated_ascii.stl", "solid t\nfacet normal 0 0 1\nouter loop\nvertex 0 0 0\nvertex 1 0\n",
      r"holds no triangles|cannot read it as a mesh"),
@@ -692,6 +692,25 @@ def test_bench_accepts_numpy_integer_loops(grid):
     assert elapsed_ns >= 0 and checksum == pytest.approx(2 * one, rel=1e-12)
 
 
+def test_timed_batch_thread_clock_counts_the_same_work(grid):
+    """The thread clock times the same loop: same checksum, and a single thread's CPU
+    time cannot exceed the wall time around it."""
+    import time
+
+    run_wall, run_thread = grid.timed_batch(O3, D3), grid.timed_batch(O3, D3, clock="thread")
+    t0 = time.perf_counter_ns()
+    elapsed, checksum = run_thread(50_000)
+    wall = time.perf_counter_ns() - t0
+    assert 0 < elapsed <= wall + 1_000_000  # the thread clock may tick in steps of up to 1 ms
+    assert checksum == run_wall(50_000)[1]
+
+
+@pytest.mark.parametrize("clock", ["cpu", "", None, 1])
+def test_timed_batch_rejects_unknown_clock(grid, clock):
+    with pytest.raises(ValueError, match=r"clock must be one of wall, thread"):
+        grid.timed_batch(O3, D3, clock=clock)
+
+
 @pytest.mark.parametrize("ragged", ["origins", "directions"])
 def test_ragged_rays_are_named(grid, scene, ragged):
     rows = [[0.1, 0.1, 0.1], [0.2, 0.2]]
@@ -711,3 +730,16 @@ def test_brute_force_rejects_a_non_scene(not_a_scene):
 def test_brute_force_rejects_unknown_intersector(scene):
     with pytest.raises(ValueError, match=r"unknown intersector 'fast'"):
         brute_force(scene, O3, D3, "fast")
+
+
+def test_scene_and_kernel_refuse_a_box_whose_extent_overflows_on_every_axis():
+    """+-1.7e308 on all three axes: no axis is thin, so nothing widened the box and noticed the
+    overflow; the kernel then divided by an infinite extent and crashed (a fuzzing find)."""
+    from calibrate import _kernels
+
+    v = np.array([[-1.7e308] * 3, [1.7e308] * 3, [0.0, 1.7e308, -1.7e308]])
+    f = np.array([[0, 1, 2]])
+    with pytest.raises(ValueError, match=r"box is too wide for float64: its extent overflows"):
+        Scene(v, f)
+    with pytest.raises(ValueError, match=r"too wide for double precision"):
+        _kernels.build(v, f, (1, 1, 6))

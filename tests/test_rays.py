@@ -469,3 +469,29 @@ def test_surface_rejects_bad_input(vertices, faces, kwargs, match):
     n = kwargs.pop("n", 10)
     with pytest.raises(ValueError, match=match):
         rays.surface(vertices, faces, n, 0, **kwargs)
+
+
+@pytest.mark.parametrize("exponent", [-200, -20, 20, 200])
+def test_ray_sets_on_boxes_of_extreme_scale(exponent):
+    """Boxes of 1e-200 to 1e200: areas and diagonals neither overflow nor underflow (a fuzzing find)."""
+    scale = 10.0 ** exponent
+    lo, hi = np.array([-1.0, 0.0, 2.0]) * scale, np.array([3.0, 0.5, 2.25]) * scale
+    o, d = rays.isotropic(lo, hi, 512, seed=exponent + 1000)
+    assert np.all(np.isfinite(o)) and np.allclose(np.linalg.norm(d, axis=1), 1.0)
+    diag = np.linalg.norm((hi - lo) / scale) * scale
+    entry = o + (rays.ISOTROPIC_MARGIN_FRACTION_OF_DIAGONAL * diag) * d
+    inside = np.all((entry >= lo - 1e-9 * scale) & (entry <= hi + 1e-9 * scale), axis=1)
+    assert inside.all(), f"{(~inside).sum()} rays do not enter the box where they should"
+    o, d = rays.camera(lo, hi, 64, seed=exponent + 2000)
+    assert np.all(np.isfinite(o)) and np.allclose(np.linalg.norm(d, axis=1), 1.0)
+
+
+def test_isotropic_rejects_a_box_too_wide_for_float64():
+    with pytest.raises(ValueError, match="too wide for float64"):
+        rays.isotropic([-1e308, 0, 0], [1e308, 1, 1], 8, seed=0)
+
+
+def test_isotropic_refuses_origins_beyond_float64():
+    """Rays start outside the box; for a box at float64's limit they cannot (a fuzzing find)."""
+    with pytest.raises(ValueError, match="too close to float64's limit"):
+        rays.isotropic([0.2e308, 0, 0], [1.79e308, 1e307, 1e307], 512, seed=0)

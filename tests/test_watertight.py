@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from calibrate import Grid, Scene, brute_force
+from calibrate.rays import aimed_at_edges
 from calibrate.scenes import jittered_closed_mesh
 
 from conftest import first_hit_disagreements
@@ -39,35 +40,10 @@ NESTED_LEVELS = (2, 3)
 TARGET_T_REL_TOLERANCE = 1e-9
 
 
-def unique_edges(faces: np.ndarray) -> np.ndarray:
-    """(E, 2) int64 undirected edges of a triangle mesh, each once (smaller index first)."""
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    return np.unique(np.sort(e, axis=1), axis=0)
-
-
 def watertight_rays(vertices: np.ndarray, faces: np.ndarray, rng: np.random.Generator):
-    """Rays from inside aimed at every vertex, every edge midpoint and random edge points.
-
-    Parameters
-    ----------
-    vertices : (V, 3) float64; faces : (F, 3) int64, a closed mesh around the origin.
-
-    Returns
-    -------
-    origins, directions : (n, 3) float64, directions = target - origin (so t = 1 at the target);
-    kind : (n,) str array, 'vertex', 'midpoint' or 'edge point'.
-    """
-    edges = unique_edges(faces)
-    a, b = vertices[edges[:, 0]], vertices[edges[:, 1]]
-    pick = rng.integers(0, len(edges), RANDOM_EDGE_POINT_RAYS)
-    s = rng.random((RANDOM_EDGE_POINT_RAYS, 1))
-    targets = np.concatenate([vertices, 0.5 * (a + b), a[pick] + s * (b[pick] - a[pick])])
-    kind = np.array(["vertex"] * len(vertices) + ["midpoint"] * len(edges) + ["edge point"] * len(pick))
-    n = len(targets)
-    u = rng.normal(size=(n, 3))
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    origins = ORIGIN_BALL_RADIUS * np.cbrt(rng.random((n, 1))) * u
-    return origins, targets - origins, kind
+    """Rays from inside aimed at every vertex, every edge midpoint and random edge points
+    (:func:`calibrate.rays.aimed_at_edges`); returns origins, directions (t = 1 at the target), kind."""
+    return aimed_at_edges(vertices, faces, RANDOM_EDGE_POINT_RAYS, rng, origin_radius=ORIGIN_BALL_RADIUS)
 
 
 def star_shaped_from_ball(vertices: np.ndarray, faces: np.ndarray, radius: float) -> bool:

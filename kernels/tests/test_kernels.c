@@ -7,6 +7,7 @@
  * `make test-sanitize`.
  */
 #include "gridcal.h"
+#include "overlap.h"
 
 #include <math.h>
 #include <stdio.h>
@@ -368,6 +369,27 @@ static void test_refusals(void)
           "NaN vertex not refused: %s", err);
     m.v[5] = 0.5;
 
+    /* vertices near +-DBL_MAX: the box's extent overflows to inf (found by fuzzing: a segfault) */
+    {
+        const double v0 = m.v[0], v3 = m.v[3];
+        const int64_t keep[3] = {m.f[0], m.f[1], m.f[2]};
+        m.v[0] = -1.7e308, m.v[3] = 1.7e308;
+        m.f[0] = 0, m.f[1] = 1, m.f[2] = 1;
+        err[0] = 0;
+        CHECK(gc_grid_build(&mesh, &p, &g, err) == GC_ERR_ARGUMENT && g == NULL && strstr(err, "too wide"),
+              "a box whose extent overflows not refused: %s", err);
+        p.has_box = 1;
+        for (int i = 0; i < 3; ++i) {
+            p.box_lo[i] = -1.7e308, p.box_hi[i] = 1.7e308;
+        }
+        err[0] = 0;
+        CHECK(gc_grid_build(&mesh, &p, &g, err) == GC_ERR_ARGUMENT && g == NULL && strstr(err, "too wide"),
+              "a given box whose extent overflows not refused: %s", err);
+        p = gc_build_params_default();
+        m.v[0] = v0, m.v[3] = v3;
+        m.f[0] = keep[0], m.f[1] = keep[1], m.f[2] = keep[2];
+    }
+
     gc_mesh empty = {m.v, m.nv, m.f, 0};
     CHECK(gc_grid_build(&empty, &p, &g, err) == GC_ERR_ARGUMENT, "empty mesh without a box accepted");
     p.has_box = 1;
@@ -490,8 +512,51 @@ static void test_mesh_sums(void)
           "out-of-range index accepted by the sums");
 }
 
+/* The build's prepared triangle/box test (overlap.h) against the plain one
+ * (gc_triangle_box_overlap) on seeded random triangles and boxes of mixed sizes,
+ * near the origin and far from it, including triangles thin along two axes
+ * (the rows the build fills without a test). */
+static void test_prepared_overlap(void)
+{
+    int64_t differ = 0, overlaps = 0;
+    const int64_t n = 200000;
+    for (int64_t k = 0; k < n; ++k) {
+        rng_seed(9000 + (uint64_t)k);
+        const double shift = (k % 3 == 0) ? 1e6 : 0.0;
+        const double size = pow(10.0, -3.0 * rng_uniform());
+        double v[3][3], lo[3], hi[3], thin[3] = {1.0, 1.0, 1.0};
+        if (k % 4 == 1) { /* a sliver along one axis */
+            const int a = (int)(k / 4 % 3);
+            thin[(a + 1) % 3] = thin[(a + 2) % 3] = 1e-3;
+        }
+        for (int j = 0; j < 3; ++j) {
+            for (int i = 0; i < 3; ++i) {
+                v[j][i] = shift + size * thin[i] * (2.0 * rng_uniform() - 1.0);
+            }
+        }
+        for (int i = 0; i < 3; ++i) {
+            const double c = shift + size * (2.0 * rng_uniform() - 1.0), h = size * rng_uniform();
+            lo[i] = c - h;
+            hi[i] = c + h;
+        }
+        gc_tri_box_prep p;
+        gc_tri_box_prepare(&p, v[0], v[1], v[2]);
+        const int a = gc_triangle_box_overlap(v[0], v[1], v[2], lo, hi);
+        const int b = gc_tri_box_prepared_overlap(&p, lo[0], lo[1], lo[2], hi[0], hi[1], hi[2], 0.5 * (lo[0] + hi[0]),
+                                                  0.5 * (lo[1] + hi[1]), 0.5 * (lo[2] + hi[2]), 0.5 * (hi[0] - lo[0]),
+                                                  0.5 * (hi[1] - lo[1]), 0.5 * (hi[2] - lo[2]));
+        differ += a != b;
+        overlaps += a;
+    }
+    CHECK(differ == 0, "prepared triangle/box test differs from the plain one on %lld of %lld cases",
+          (long long)differ, (long long)n);
+    CHECK(overlaps > n / 10 && overlaps < n - n / 10, "overlap cases not mixed: %lld of %lld overlap",
+          (long long)overlaps, (long long)n);
+}
+
 int main(void)
 {
+    test_prepared_overlap();
     test_mesh_sums();
     test_refusals();
     test_grids_match_brute_force();
