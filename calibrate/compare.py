@@ -53,7 +53,7 @@ LEVEL_CHOICES = ("1", "2", "auto")
 #: Kalojanov, Billeter, Slusallek 2011: leaf grids of density 1.2 references per cell.
 NESTED_BASELINES = {"manta-L2-top": (8.0, None), "kalojanov-2level": (1.2, (1.0, 1.0))}
 #: Plot: figure size per scene panel (inches) and resolution.
-PANEL_INCHES = (5.0, 3.6)
+PANEL_INCHES = (5.2, 4.6)
 DPI = 90
 PANEL_COLUMNS = 2
 
@@ -103,15 +103,18 @@ def _model_counts(stats, terms, spec: GridSpec, point: dict) -> tuple[float, flo
 
 
 def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: str = "auto",
-                  rays: str = "isotropic", points: int = DEFAULT_POINTS, ray_count: int = DEFAULT_RAY_COUNT,
+                  fidelity: str = "analytic", rays: str = "isotropic", points: int = DEFAULT_POINTS,
+                  ray_count: int = DEFAULT_RAY_COUNT,
                   rounds: int = _sweep.SWEEP_ROUNDS, min_time: float = _sweep.SWEEP_MIN_VALUE_NS * 1e-9,
-                  seed: int = 0, progress=None, status=None) -> dict:
+                  seed: int = 0, clock: str = _sweep.DEFAULT_CLOCK, progress=None, status=None) -> dict:
     """Measured sweep, predicted curve and penalties of one scene (module docstring).
 
     scene : Scene, built-in name or mesh path; constants / samples / ratio : as
-    :func:`calibrate.predict.predict`; levels : "1" | "2" | "auto"; rays : "isotropic" |
+    :func:`calibrate.predict.predict`; levels : "1" | "2" | "auto"; fidelity : the
+    prediction's ("paper" | "analytic" | "simulated"); rays : "isotropic" |
     "camera"; points : sweep points per curve (>= 3); ray_count : rays per batch;
-    rounds, min_time : values per grid and seconds per value.
+    rounds, min_time : values per grid and seconds per value; clock : "thread" (the timing
+    thread's CPU time) or "wall" (the kernel's monotonic clock, as ``calibrate run`` times).
 
     Returns a JSON-ready dict: ``scene``, ``triangles``, ``units``, ``penalty``,
     ``predicted_resolution`` (top level), ``predicted_levels``, ``predicted_time_ns``,
@@ -129,7 +132,8 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
     src = dict(constants=constants, samples=samples, ratio=ratio)
     say = status or (lambda text: None)
     say(f"{scene.name}: predicting")
-    pred = _predict.predict(scene, levels=levels, rays=rays, **src)
+    fidelity = _predict._check_choice("fidelity", fidelity, _predict.FIDELITIES)
+    pred = _predict.predict(scene, levels=levels, rays=rays, fidelity=fidelity, **src)
     chosen = _plan_spec(pred, k.ratio, "predicted")
     depths = {"1": [1], "2": [2], "auto": [1, 2]}[levels]
     if len(pred["levels"]) not in depths:
@@ -139,8 +143,8 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
         if L == len(pred["levels"]):
             centres[L] = chosen
         else:
-            centres[L] = _plan_spec(_predict.predict(scene, levels=str(L), rays=rays, **src), k.ratio,
-                                    f"L={L} plan")
+            centres[L] = _plan_spec(_predict.predict(scene, levels=str(L), rays=rays, fidelity=fidelity, **src),
+                                    k.ratio, f"L={L} plan")
     factors = sweep_factors(points)
     curve_specs = {L: [_curve_spec(c, f) for f in factors] for L, c in centres.items()}
     baselines = _baseline_specs(pred)
@@ -153,8 +157,12 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
             unique.append(spec)
     say(f"{scene.name}: building {len(unique)} grids")
     o, d = _predict._rays(scene, rays, int(ray_count), RAY_SEED)
-    measured = _sweep.sweep(scene, unique, (o, d), rounds=rounds, min_time=min_time, seed=seed, progress=progress,
-                            status=lambda text: say(f"{scene.name}: {text}"))
+    try:
+        measured = _sweep.sweep(scene, unique, (o, d), rounds=rounds, min_time=min_time, seed=seed,
+                                progress=progress, status=lambda text: say(f"{scene.name}: {text}"),
+                                required=(index[chosen],), clock=clock)
+    except ValueError as exc:
+        raise UserError(f"{scene.name}: the predicted grid cannot be measured ({exc})") from None
     stats = scene.stats
     terms = _predict.analytic_uniform_plan(stats, k, False)[0]["terms"]
     notes = list(k.notes)
@@ -222,7 +230,8 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
     else:
         t_step_ns = None
     return _predict._plain(dict(
-        scene=scene.name, triangles=scene.n_triangles, units=units, rays=rays, ray_count=int(ray_count),
+        scene=scene.name, triangles=scene.n_triangles, units=units, fidelity=fidelity, rays=rays, clock=clock,
+        ray_count=int(ray_count),
         constants=pred["constants"], penalty=_sweep.penalty(mc["median_ns"], t_best),
         predicted_resolution=list(chosen.top), predicted_levels=len(pred["levels"]),
         predicted_level_resolutions=[lv["resolution"] for lv in pred["levels"]],
@@ -302,9 +311,9 @@ def plot(results: list[dict], path) -> Path:
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel("cells (all levels)")
-        ax.set_ylabel("ns per ray (thread CPU time)")
+        ax.set_ylabel(f"ns per ray ({'thread CPU' if r.get('clock', 'thread') == 'thread' else 'wall'} time)")
         ax.set_title(f"{r['scene']} ({r['triangles']:,} triangles)", fontsize=10)
-        ax.legend(fontsize=6.5, loc="best")
+        ax.legend(fontsize=6.5, loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=3, frameon=False)
     fig.suptitle("measured (points, MAD bars) and predicted (lines, 95% band) time per ray", fontsize=9)
     fig.tight_layout()
     buf = io.BytesIO()
@@ -359,6 +368,8 @@ def add_parser(sub):
                      help="predict from your own T_int/T_step alone")
     sp.add_argument("--levels", default="auto", choices=LEVEL_CHOICES,
                     help="depths to sweep and predict (auto: uniform and two-level, the prediction's own depth)")
+    sp.add_argument("--fidelity", default="analytic", choices=_predict.FIDELITIES,
+                    help="the prediction's fidelity (as calibrate predict's)")
     sp.add_argument("--rays", default="isotropic", choices=_predict.RAY_KINDS)
     sp.add_argument("--points", type=_points_arg, default=DEFAULT_POINTS, metavar="N",
                     help=f"sweep points per depth, 1/{SWEEP_SPAN:g}x to {SWEEP_SPAN:g}x per axis "
@@ -369,6 +380,9 @@ def add_parser(sub):
                     help=f"timed values per grid (default {_sweep.SWEEP_ROUNDS})")
     sp.add_argument("--min-time", type=positive_number("--min-time"), default=_sweep.SWEEP_MIN_VALUE_NS * 1e-9,
                     metavar="SECONDS", help=f"shortest timed value (default {_sweep.SWEEP_MIN_VALUE_NS * 1e-9:g} s)")
+    sp.add_argument("--clock", default=_sweep.DEFAULT_CLOCK, choices=_sweep.CLOCKS,
+                    help="thread: the timing thread's CPU time (default; a busy host's waits left out); wall: the "
+                         "kernel's wall clock, as calibrate run times")
     sp.add_argument("--plot", metavar="FILE", help="write a PNG: measured points, predicted curve, choices")
     sp.set_defaults(func=cmd_compare)
     return sp
@@ -389,21 +403,31 @@ def cmd_compare(args) -> int:
         check_writable(plot_path)  # a directory, a missing or read-only directory, a write-protected file
     names = args.meshes or builtin_names()
     scenes = [Scene.load(name) for name in names]  # every input checked before anything is measured
-    results = []
+    results, skipped = [], []
     with _Progress(not args.quiet and sys.stderr.isatty(), "comparing") as bar:
         for i, scene in enumerate(scenes):
             def status(text, i=i):
                 bar.status(f"[{i + 1}/{len(scenes)}] {text}")
 
-            results.append(compare_scene(scene, levels=args.levels, rays=args.rays, points=args.points,
-                                         ray_count=args.ray_count, rounds=args.rounds,
-                                         min_time=args.min_time, progress=bar,
-                                         status=status, **src))
+            try:
+                results.append(compare_scene(scene, levels=args.levels, fidelity=args.fidelity, rays=args.rays,
+                                             points=args.points, ray_count=args.ray_count, rounds=args.rounds,
+                                             min_time=args.min_time, clock=args.clock, progress=bar,
+                                             status=status, **src))
+            except UserError as exc:  # a scene whose grids cannot be built: the others still count
+                if len(scenes) == 1:
+                    raise
+                skipped.append(str(exc))
+    for reason in skipped:
+        print(f"calibrate: warning: skipped {reason}", file=sys.stderr)
+    if not results:
+        raise UserError("no scene could be measured: " + "; ".join(skipped))
     summary = summarise(results)
     if args.plot:
         plot(results, Path(args.plot))
     if args.json:
-        sys.stdout.write(json.dumps(dict(scenes=results, summary=summary), indent=2, allow_nan=False) + "\n")
+        doc = dict(scenes=results, summary=summary, skipped=skipped)
+        sys.stdout.write(json.dumps(doc, indent=2, allow_nan=False) + "\n")
         return 0
     _print_human(results, summary, args.plot)
     return 0

@@ -74,6 +74,10 @@ BYTES_PER_NODE = 120
 #: T_step.  Estimate from the kernel's walk(): entering a subgrid repeats the per-axis
 #: DDA set-up (entry cell, t_next, dt for 3 axes), about the work of two cell steps.
 RATIO_MODE_T_SUB_IN_T_STEP = 2.0
+#: T_setup assumed with ``ratio`` alone when a *relative* cost matters (the depth rule's
+#: gain, :data:`DEEPEN_MIN_GAIN`), in units of T_step: the reference calibration's
+#: 58.8 ns / 22.1 ns (docs/calibration.md).  Costs reported in ratio mode keep T_setup = 0.
+RATIO_MODE_T_SETUP_IN_T_STEP = 2.66
 
 # --- nested plans ---------------------------------------------------------------------------
 #: Nested plans (L >= 2) come from :func:`models.nested.nested_counts` (Crofton composition
@@ -81,6 +85,15 @@ RATIO_MODE_T_SUB_IN_T_STEP = 2.0
 #: per-axis scales of the talk's L-level closed form for the top resolution (a walk from
 #: the closed form towards cheaper neighbours, stopping at the first dearer one).
 #: ``levels=auto`` stops at the first depth that does not beat the one above it.
+#: A deeper grid is chosen only when its predicted cost per ray is at least this fraction
+#: below the shallower one's.  The four-constant model misses what a nested grid pays in
+#: memory (several times the cells, a node fetch per subgrid entered; docs/calibration.md),
+#: and its misfit on real traversals is about 20% (the calibration's scatter term, 95%
+#: interval 18-26% on the reference host): a smaller predicted gain is not evidence.
+#: ``calibrate compare`` measured the shallower grid as fast or faster wherever the
+#: predicted gain was under 20% (sphere 20%, cylinder1996 13%, a third level on the CAD
+#: chair 2%; docs/compare.md).
+DEEPEN_MIN_GAIN = 0.20
 #: (:func:`models.nested.optimal_nested`'s nlopt search is not used: with exact overlap it
 #: takes about 20 s on 40k triangles.)
 #: Up to this many triangles the plan uses exact triangle/cell overlap (the kernel's
@@ -460,14 +473,17 @@ def _analytic_nested(scene, stats, k: Constants, L, mailbox):
     return plan, effects
 
 
-def _deepen(k: Constants, uniform, nested, stops, how: str):
-    """Depth by predicted cost per ray incl. T_sub, stopping at the first depth that does not improve.
+def _deepen(k: Constants, uniform, nested, stops, how: str, min_gain: float = DEEPEN_MIN_GAIN):
+    """Depth by predicted cost per ray incl. T_sub, stopping at the first depth that does not
+    improve on the one above it by at least ``min_gain`` (a fraction of its cost).
 
     uniform() gives the single-level (plan, effects); nested(L) an L-level one,
     raising one of ``stops`` when that depth cannot be modelled or built."""
     best = uniform()
     best_ns = k.cost(best[0]["steps"], best[0]["tests"])
     tried = [f"L=1: {best_ns:.4g}"]
+    # the gain is relative to the whole cost of a ray, set-up included (unknown in ratio mode)
+    setup = RATIO_MODE_T_SETUP_IN_T_STEP * k.t_step if k.units != "ns" else 0.0
     for L in range(2, MAX_LEVELS + 1):
         try:
             cand = nested(L)
@@ -476,12 +492,14 @@ def _deepen(k: Constants, uniform, nested, stops, how: str):
             break
         ns = k.cost(cand[0]["steps"], cand[0]["tests"], cand[0]["subgrids"])
         tried.append(f"L={L}: {ns:.4g}")
-        if ns >= best_ns:
+        if ns + setup >= (best_ns + setup) * (1.0 - min_gain):
             break
         best, best_ns = cand, ns
     best[1].append(dict(name="levels", used=True, change=0.0,
                         reason=(f"depth by {how} cost per ray incl. T_sub ({k.units}), stopping at the first "
-                                "depth that does not improve: " + ", ".join(tried))))
+                                f"depth that does not improve by {100 * min_gain:.0f}% (the model's misfit on real "
+                                "traversals)" + (f", T_setup taken as {RATIO_MODE_T_SETUP_IN_T_STEP:g} T_step for the "
+                                                 "gain" if setup else "") + ": " + ", ".join(tried))))
     return best
 
 

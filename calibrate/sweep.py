@@ -60,8 +60,11 @@ SWEEP_MIN_VALUE_NS = 10_000_000
 SWEEP_WARMUPS = 1
 #: A spec whose top level would exceed this many cells is not built (memory and time).
 MAX_SWEEP_CELLS = 2 ** 25
-#: A grid whose build would take more memory than this (bytes) is not built.
+#: A grid whose build would take more memory than this (bytes) is not built, and a sweep
+#: stops building once its grids together hold MAX_SWEEP_TOTAL_BYTES (they are all kept
+#: in memory to be timed interleaved).
 MAX_SWEEP_MEMORY_BYTES = 2 ** 31
+MAX_SWEEP_TOTAL_BYTES = 6 * 2 ** 30
 #: fit_minimum: the quadratic goes through the points within this factor in scale of the
 #: lowest one, and must agree with the lowest point within this relative difference (or
 #: its noise, if larger).
@@ -294,10 +297,16 @@ def measure_time_per_ray(scene: Scene, spec_or_grid, origins, directions, *, rou
                  mailbox=mailbox, clock=clock)[0]
 
 
+def _skip(out: list, row: dict, i: int, required) -> None:
+    if i in required:
+        raise ValueError(f"grid {i + 1} cannot be measured: {row['skipped']}")
+    out.append(row)
+
+
 def sweep(scene: Scene, specs: Sequence, rays, *, rounds: int = SWEEP_ROUNDS,
           min_time: float = SWEEP_MIN_VALUE_NS * 1e-9, seed: int = 0, mailbox: bool = False,
           clock: str = DEFAULT_CLOCK, progress: Callable[[int, int, str], None] | None = None,
-          status: Callable[[str], None] | None = None) -> list[dict]:
+          status: Callable[[str], None] | None = None, required: Sequence[int] = ()) -> list[dict]:
     """Build, count and time several grids on one ray batch, interleaved.
 
     specs : GridSpecs or built Grids; rays : (origins, directions), (n, 3) each.
@@ -305,6 +314,9 @@ def sweep(scene: Scene, specs: Sequence, rays, *, rounds: int = SWEEP_ROUNDS,
     :func:`calibrate.protocol.measure`, each round in a fresh random order drawn from
     ``seed``.  A spec whose top level exceeds :data:`MAX_SWEEP_CELLS` cells, or whose
     build fails (more than :data:`MAX_SWEEP_MEMORY_BYTES`), gives a dict with ``skipped`` (the reason) and no times.
+
+    ``required`` : indices of specs that must be built: when one is skipped the sweep
+    raises ``ValueError`` at once (before building the rest).
 
     Returns one dict per spec, in order (see :func:`measure_time_per_ray`), each with
     ``spec`` (its :meth:`GridSpec.to_dict`, or None for a Grid).
@@ -323,22 +335,28 @@ def sweep(scene: Scene, specs: Sequence, rays, *, rounds: int = SWEEP_ROUNDS,
         raise ValueError(f"min_time must be > 0 s, got {min_time!r}")
     out: list[dict] = []
     configs = {}
+    held = 0
     for i, spec in enumerate(specs):
         row = dict(spec=spec.to_dict() if isinstance(spec, GridSpec) else None)
         if status is not None:
             status(f"building {i + 1}/{len(specs)}")
         if isinstance(spec, GridSpec) and spec.top_cells > MAX_SWEEP_CELLS:
             row["skipped"] = f"{spec.top_cells:,} top-level cells exceed the sweep's {MAX_SWEEP_CELLS:,}"
-            out.append(row)
+            _skip(out, row, i, required)
+            continue
+        if held > MAX_SWEEP_TOTAL_BYTES:
+            row["skipped"] = f"the sweep's grids already hold {held / 2**30:.1f} GiB"
+            _skip(out, row, i, required)
             continue
         try:
             grid = _as_grid(scene, spec, mailbox)
         except (ValueError, MemoryError) as exc:
             row["skipped"] = f"not built: {exc}"
-            out.append(row)
+            _skip(out, row, i, required)
             continue
         row["resolution"] = list(grid.resolution)
         row.update(_counts(grid, o, d))
+        held += row["memory_bytes"]
         configs[str(i)] = _timed(grid, o, d, clock)
         out.append(row)
         if progress is not None:

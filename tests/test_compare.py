@@ -43,7 +43,7 @@ def short_run(tmp_path_factory):
 def test_json_has_every_field(short_run):
     code, doc, _ = short_run
     assert code == 0
-    assert set(doc) == {"scenes", "summary"}
+    assert set(doc) == {"scenes", "summary", "skipped"} and doc["skipped"] == []
     (r,) = doc["scenes"]
     for key in SCENE_KEYS:
         assert key in r, key
@@ -85,10 +85,14 @@ def test_plot_written(short_run):
     (["compare", "cylinder196", "--points", "2"], "--points"),
     (["compare", "cylinder196", "--points", "many"], "--points"),
     (["compare", "cylinder196", "--levels", "4"], "--levels"),
+    (["compare", "cylinder196", "--fidelity", "exact"], "--fidelity"),
+    (["compare", "cylinder196", "--plot", "{tmp}/out.svg"], ".png"),
 ])
 def test_bad_input_is_one_line_exit_2_and_no_plot(argv, fragment, tmp_path, capsys):
     plot = tmp_path / "out.png"
-    code, out, err = _run([*argv, "--ratio", str(RATIO), "--plot", str(plot)], capsys)
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
+    extra = [] if "--plot" in argv else ["--plot", str(plot)]
+    code, out, err = _run([*argv, "--ratio", str(RATIO), *extra], capsys)
     assert code == 2
     assert err.startswith("calibrate: error:") and err.count("\n") == 1 and fragment in err
     assert out == ""
@@ -110,3 +114,13 @@ def test_two_level_sweep_scales_top_and_subgrids():
     tops = [p["resolution"] for p in curve["points"]]
     assert tops[0] < tops[1] < tops[2]
     assert all(p["subgrids"] > 0 for p in curve["points"])
+
+
+def test_a_predicted_grid_over_the_budget_is_one_line_exit_2(monkeypatch, capsys):
+    import calibrate.sweep
+
+    monkeypatch.setattr(calibrate.sweep, "MAX_SWEEP_CELLS", 100)  # cylinder196's prediction has thousands
+    code, out, err = _run(["compare", "cylinder196", "--levels", "1", *SHORT], capsys)
+    assert code == 2 and "predicted grid cannot be measured" in err and err.count("\n") == 1 and out == ""
+    code, out, err = _run(["compare", "cylinder196", "cylinder196", "--levels", "1", *SHORT], capsys)
+    assert code == 2 and "no scene could be measured" in err and out == ""

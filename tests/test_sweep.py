@@ -151,3 +151,10 @@ def test_fit_minimum_keeps_the_lowest_point_at_a_kink():
     fit = fit_minimum(scales, times, mads=np.full(7, 10.0))
     assert not fit["fitted"]
     assert fit["scale"] == scales[3] and fit["time"] == 1639.0
+
+
+def test_a_required_grid_that_cannot_be_built_stops_the_sweep_at_once(cylinder):
+    side = int(round(MAX_SWEEP_CELLS ** (1 / 3))) + 2
+    with pytest.raises(ValueError, match="cannot be measured"):
+        sweep(cylinder, [GridSpec("uniform", [(side, side, side)]), GridSpec("uniform", [(2, 2, 2)])],
+              _rays(cylinder), required=(0,), **FAST)

@@ -1,0 +1,111 @@
+"""Benchmark: `calibrate compare` over the built-in scenes and the real meshes.
+
+    python tests/benchmarks/compare_all.py [--ratio R | --calibration FILE (default calibration.json)]
+        [--out results.json]
+        [--plot figure.png --plot-scenes NAME ...] [--skip NAME ...] [--only NAME ...]
+
+Prints, per scene, the penalty of the prediction and of each baseline against the
+measured best, then the median and worst penalty of each over all scenes.  Results
+are written to ``--out`` after every scene (a long run can be read while it goes).
+Real meshes are found in ../shared/meshes beside the checkout; absent, only the
+built-in scenes run.  Meshes above ``--big`` triangles get ``--big-rays`` rays per
+batch instead of ``--rays`` (said in the output).  Not a test: the goals (median
+penalty at most 1%, worst at most 3%, a lower median than every baseline) are read off
+the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+from calibrate import Scene
+from calibrate.compare import DEFAULT_POINTS, compare_scene, plot, summarise
+from calibrate.predict import load_calibration_constants
+from calibrate.scenes import builtin_names
+
+MESHES = Path(__file__).resolve().parents[3] / "shared" / "meshes"
+MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off")
+
+
+def _pct(x):
+    return "      -" if x is None else f"{100 * x:+7.1f}"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    src = ap.add_mutually_exclusive_group()
+    src.add_argument("--ratio", type=float, default=None)
+    src.add_argument("--calibration", default=None)
+    ap.add_argument("--meshes", default=str(MESHES), help="directory of real meshes (default ../shared/meshes)")
+    ap.add_argument("--levels", default="auto")
+    ap.add_argument("--fidelity", default="analytic")
+    ap.add_argument("--points", type=int, default=DEFAULT_POINTS)
+    ap.add_argument("--rays", type=int, default=4096)
+    ap.add_argument("--big", type=int, default=50_000, help="triangles above which --big-rays is used")
+    ap.add_argument("--big-rays", type=int, default=2048)
+    ap.add_argument("--rounds", type=int, default=7)
+    ap.add_argument("--out", default="compare_all.json")
+    ap.add_argument("--plot", default=None)
+    ap.add_argument("--plot-scenes", nargs="*", default=[])
+    ap.add_argument("--skip", nargs="*", default=[])
+    ap.add_argument("--only", nargs="*", default=[])
+    args = ap.parse_args()
+    if args.ratio is None and not args.calibration:
+        args.calibration = "calibration.json"  # a calibration belongs to its kernels: no built-in r
+    if args.calibration:
+        k = load_calibration_constants(args.calibration)
+        source = dict(samples={f"{n}_ns": k.samples[n] for n in ("t_setup", "t_step", "t_int", "t_sub")},
+                      constants={f"{n}_ns": getattr(k, n) for n in ("t_setup", "t_step", "t_int", "t_sub")})
+    else:
+        source = dict(ratio=args.ratio)
+    names = list(builtin_names())
+    meshes = Path(args.meshes)
+    if meshes.is_dir():
+        names += sorted(str(p) for p in meshes.iterdir() if p.suffix.lower() in MESH_SUFFIXES)
+    else:
+        print(f"real meshes absent ({meshes}); built-in scenes only")
+    names = [n for n in names if Path(n).name not in args.skip and n not in args.skip]
+    if args.only:
+        names = [n for n in names if Path(n).name in args.only or n in args.only]
+    print(f"source: {source if 'ratio' in source else args.calibration}; levels {args.levels}; fidelity "
+          f"{args.fidelity}; "
+          f"{args.points} points per depth; {args.rays} rays ({args.big_rays} above {args.big:,} triangles); "
+          f"{args.rounds} rounds")
+    results = []
+    for name in names:
+        scene = Scene.load(name)
+        n_rays = args.big_rays if scene.n_triangles > args.big else args.rays
+        t0 = time.monotonic()
+        try:
+            r = compare_scene(scene, levels=args.levels, fidelity=args.fidelity, points=args.points,
+                              ray_count=n_rays, rounds=args.rounds,
+                              **source)
+        except ValueError as exc:  # e.g. the predicted grid does not fit the sweep's memory budget
+            print(f"{scene.name:28s} skipped: {exc}", flush=True)
+            continue
+        r["wall_s"] = time.monotonic() - t0
+        results.append(r)
+        base = "  ".join(f"{n} {_pct(b['penalty'])}" for n, b in r["baselines"].items())
+        print(f"{r['scene']:28s} {r['triangles']:>7,} tri  L{r['predicted_levels']} pred "
+              f"{'x'.join(map(str, r['predicted_resolution'])):>12s}  best L{r['best_measured_levels']} "
+              f"{'x'.join(map(str, r['best_measured_resolution'])):>12s}  penalty {_pct(r['penalty'])}%  | {base}"
+              f"  ({r['wall_s']:.0f} s, {n_rays} rays)", flush=True)
+        Path(args.out).write_text(json.dumps(dict(scenes=results, summary=summarise(results)), indent=1))
+    s = summarise(results)
+    print("\npenalty over scenes (%):      median    worst")
+    print(f"  {'predicted':26s} {_pct(s['predicted']['median'])} {_pct(s['predicted']['worst'])}")
+    for n, b in s["baselines"].items():
+        print(f"  {n:26s} {_pct(b['median'])} {_pct(b['worst'])}")
+    if args.plot:
+        chosen = [r for r in results if r["scene"] in args.plot_scenes] or results[:2]
+        plot(chosen, Path(args.plot))
+        print(f"plot of {', '.join(r['scene'] for r in chosen)} written to {args.plot}")
+    sys.stdout.flush()
+
+
+if __name__ == "__main__":
+    main()
