@@ -435,6 +435,7 @@ CASES: list[Case] = [
     cli(BENCH, "NaN shortest value", "compare --ratio 1 --min-time nan", "must be a positive number"),
     cli(BENCH, "unknown level count", "compare --ratio 1 --levels 3", "invalid choice"),
     cli(BENCH, "unknown ray set", "compare --ratio 1 --rays laser", "invalid choice"),
+    cli(BENCH, "unknown fidelity", "compare --ratio 1 --fidelity exact", "invalid choice"),
     cli(BENCH, "plot is a directory", "compare --ratio 1 --plot adir", "adir: it is a directory"),
     cli(BENCH, "plot directory missing", "compare --ratio 1 --plot nowhere/fig.png", "directory nowhere does not exist"),
     cli(BENCH, "plot's directory is a file", "compare --ratio 1 --plot out.json/fig.png", "out.json is not a directory"),
