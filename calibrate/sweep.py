@@ -30,7 +30,6 @@ Subgrid sizing of a nested spec (``subgrids``):
 from __future__ import annotations
 
 import math
-import time
 import weakref
 from dataclasses import dataclass, field, replace
 from typing import Callable, Sequence
@@ -38,7 +37,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from . import protocol
-from ._grid import DEFAULT_SUBDIVIDE_THRESHOLD, MANTA_SCALE, Grid, Scene
+from ._grid import DEFAULT_SUBDIVIDE_THRESHOLD, MANTA_SCALE, Grid, Scene, triangle_box_overlap
 
 __all__ = [
     "GridSpec",
@@ -232,7 +231,7 @@ def model_subgrid_resolutions(scene: Scene, top, depth: int, ratio: float) -> np
         geom, corners = _geometry(scene)
         overlap = "exact" if corners is not None else "bbox"
         counts = nested_counts(geom, stats.box_lo, stats.box_hi, top, int(depth), float(ratio), overlap=overlap,
-                               corners=corners, leaves="analytic")
+                               corners=corners, leaves="analytic", overlap_test=triangle_box_overlap)
         cache[key] = _kernel_subgrid_resolutions(scene, stats, counts, overlap)
     return cache[key]
 
@@ -255,24 +254,6 @@ def _counts(grid: Grid, origins, directions) -> dict:
     return dict(steps=float(steps.mean()), tests=float(tests.mean()), subgrids=float(subgrids.mean()),
                 cells=int(info["n_cells"]), references=int(info["n_refs"]),
                 memory_bytes=int(info["memory_bytes"]))
-
-
-def _timed(grid: Grid, o, d, clock: str):
-    """A run callable for :func:`calibrate.protocol.measure`: the kernel's own wall-clock
-    loop (``clock='wall'``), or the same loop timed by this thread's CPU clock
-    (``clock='thread'``): the kernel runs in the calling thread, so a value then leaves
-    out the time the thread waited for a core on a busy host."""
-    if clock == "wall":
-        return grid.timed_batch(o, d)
-    wall = grid.timed_batch(o, d)
-    read = time.thread_time_ns
-
-    def run(loops: int):
-        t0 = read()
-        _, checksum = wall(loops)
-        return read() - t0, checksum
-
-    return run
 
 
 def _summary(m: protocol.Measurement, n_rays: int) -> dict:
@@ -357,7 +338,7 @@ def sweep(scene: Scene, specs: Sequence, rays, *, rounds: int = SWEEP_ROUNDS,
         row["resolution"] = list(grid.resolution)
         row.update(_counts(grid, o, d))
         held += row["memory_bytes"]
-        configs[str(i)] = _timed(grid, o, d, clock)
+        configs[str(i)] = grid.timed_batch(o, d, clock=clock)
         out.append(row)
         if progress is not None:
             progress(0, 0, f"built {i + 1}/{len(specs)}")

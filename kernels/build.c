@@ -95,8 +95,9 @@ static void axis_range(const gc_node *nd, int ax, double a, double b, int32_t *i
     double fa = floor((a - nd->lo[ax]) * nd->inv_cell[ax]);
     double fb = floor((b - nd->lo[ax]) * nd->inv_cell[ax]);
     double top = (double)(nd->n[ax] - 1);
-    fa = fa < 0.0 ? 0.0 : (fa > top ? top : fa);
-    fb = fb < 0.0 ? 0.0 : (fb > top ? top : fb);
+    /* NaN (a cell of zero width: a subgrid narrower than an ulp of its position) clamps to 0 */
+    fa = !(fa > 0.0) ? 0.0 : (fa > top ? top : fa);
+    fb = !(fb > 0.0) ? 0.0 : (fb > top ? top : fb);
     *i0 = (int32_t)fa;
     *i1 = (int32_t)fb;
 }

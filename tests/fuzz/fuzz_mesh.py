@@ -23,8 +23,9 @@ tests/test_fuzz.py does that in CI.  The seeds in tests/fuzz/corpus are a
 tetrahedron in each format (and a byte string for the arrays), each behind its
 mode and parameter bytes; ``regression_*`` are inputs that fuzzing found to fail
 before their fixes (a NaN face probability for a box of 1e200 in
-:func:`calibrate.rays.isotropic`, rays beyond float64's range, and a segfault in
-the kernel's build for a box whose extent overflowed).
+:func:`calibrate.rays.isotropic`, rays beyond float64's range, a segfault in
+the kernel's build for a box whose extent overflowed, and one for a subgrid
+narrower than an ulp of its position, whose cells have zero width).
 """
 
 from __future__ import annotations
