@@ -70,7 +70,7 @@ MAX_SWEEP_TOTAL_BYTES = 6 * 2 ** 30
 FIT_HALF_SPAN = 2.0
 FIT_AGREEMENT = 0.02
 FIT_MIN_NEIGHBOURS = 2
-#: Clocks a value may be read with (see _timed): the timing thread's CPU time leaves out
+#: Clocks a value may be read with (see Grid.timed_batch): the timing thread's CPU time leaves out
 #: the time the thread waited for a core, so a busy host disturbs the values less.
 CLOCKS = ("thread", "wall")
 DEFAULT_CLOCK = "thread"
