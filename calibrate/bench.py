@@ -567,6 +567,7 @@ def scale_bench(*, max_triangles: int = DEFAULT_MAX_TRIANGLES, sizes=SCALE_SIZES
 def add_parser(sub):
     """Register the ``bench`` verb on an argparse subparsers object; returns its parser."""
     from .cli import positive_number
+    from .predict import add_constants_options
 
     help_text = ("single-core throughput of gridcal's recommended grids against Embree (and trimesh) on the same "
                  "rays; --scale: build time, references, memory and throughput as the triangle count grows")
@@ -576,11 +577,8 @@ def add_parser(sub):
     sp.add_argument("meshes", nargs="*", metavar="MESH|SCENE",
                     help=f"mesh files or built-in scenes (default {' '.join(DEFAULT_SCENES)}; with --scale: extra "
                          "meshes beside the built-in sphere series)")
-    src = sp.add_mutually_exclusive_group()
-    src.add_argument("--calibration", metavar="FILE",
-                     help="calibration file (default ./calibration.json when it exists, else --ratio 1)")
-    src.add_argument("--ratio", type=positive_number("the ratio T_int/T_step"), metavar="R",
-                     help="recommend grids from your own T_int/T_step")
+    add_constants_options(sp, "recommend grids from your own T_int/T_step",
+                          "calibration file (default ./calibration.json when it exists, else --ratio 1)")
     sp.add_argument("--batch", type=int, default=None, metavar="N",
                     help=f"rays per timed call (default {DEFAULT_BATCH}; --scale {SCALE_BATCH})")
     sp.add_argument("--repeats", type=int, default=None, metavar="N",

@@ -229,7 +229,7 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
                      "(the median of measured / predicted over the sweep): compare its shape, not its height")
     else:
         t_step_ns = None
-    return _predict._plain(dict(
+    return _predict.json_ready(dict(
         scene=scene.name, triangles=scene.n_triangles, units=units, fidelity=fidelity, rays=rays, clock=clock,
         ray_count=int(ray_count),
         constants=pred["constants"], penalty=_sweep.penalty(mc["median_ns"], t_best),
@@ -361,11 +361,7 @@ def add_parser(sub):
     sp.add_argument("--quiet", action="store_true", help="no progress bar")
     sp.add_argument("meshes", nargs="*", metavar="MESH|SCENE",
                     help="mesh files or built-in scene names (default: every built-in scene)")
-    src = sp.add_mutually_exclusive_group()
-    src.add_argument("--calibration", metavar="FILE",
-                     help=f"calibration file (default ./{_predict.DEFAULT_CALIBRATION} when it exists)")
-    src.add_argument("--ratio", type=positive_number("the ratio T_int/T_step"), metavar="R",
-                     help="predict from your own T_int/T_step alone")
+    _predict.add_constants_options(sp, "predict from your own T_int/T_step alone")
     sp.add_argument("--levels", default="auto", choices=LEVEL_CHOICES,
                     help="depths to sweep and predict (auto: uniform and two-level, the prediction's own depth)")
     sp.add_argument("--fidelity", default="analytic", choices=_predict.FIDELITIES,
@@ -395,7 +391,7 @@ def cmd_compare(args) -> int:
     from .cli import _Progress
     from .scenes import builtin_names
 
-    src = _predict._constants_from_args(args)
+    src = _predict.constants_from_args(args)
     if args.plot:
         plot_path = Path(args.plot)
         if not plot_path.is_dir() and plot_path.suffix.lower() != ".png":

@@ -552,17 +552,13 @@ def export(path=DEFAULT_HEADER, *, calibration=None, ratio=None) -> dict:
 
 def add_parser(sub):
     """Register the ``export`` verb on an argparse subparsers object; returns its parser."""
-    from .cli import positive_number
+    from .predict import add_constants_options
 
     help_text = "write this host's constants and grid-resolution functions as a C header"
     sp = sub.add_parser("export", help=help_text, description=help_text)
     sp.add_argument("--json", action="store_true", help="machine-readable output on stdout")
     sp.add_argument("--quiet", action="store_true", help="print nothing but errors")
-    src = sp.add_mutually_exclusive_group()
-    src.add_argument("--calibration", metavar="FILE",
-                     help=f"calibration file (default ./{DEFAULT_CALIBRATION} when it exists)")
-    src.add_argument("--ratio", type=positive_number("the ratio T_int/T_step"), metavar="R",
-                     help="export your own T_int/T_step alone (no time constants)")
+    add_constants_options(sp, "export your own T_int/T_step alone (no time constants)")
     sp.add_argument("--header", default=DEFAULT_HEADER, metavar="FILE",
                     help=f"header to write (default {DEFAULT_HEADER})")
     sp.set_defaults(func=cmd_export)

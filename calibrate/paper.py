@@ -409,16 +409,16 @@ def _loadavg():
 
 
 def _plain(x):
-    from .predict import _plain as plain
+    from .predict import json_ready  # imported late: predict is heavy to import
 
-    return plain(x)
+    return json_ready(x)
 
 
 # --- command line ---------------------------------------------------------------------------
 
 def add_parser(sub):
     """Register the ``paper`` verb on an argparse subparsers object; returns its parser."""
-    from .cli import positive_number
+    from .predict import add_constants_options
 
     help_text = "measure the talk's claims on its own scene classes and print the talk and this host side by side"
     sp = sub.add_parser("paper", help=help_text, description=help_text)
@@ -426,10 +426,8 @@ def add_parser(sub):
     sp.add_argument("--quiet", action="store_true", help="no progress bar")
     sp.add_argument("--quick", action="store_true",
                     help="fewer scenes (no 19,996-triangle cylinder), rays and repeats: about half a minute")
-    src = sp.add_mutually_exclusive_group()
-    src.add_argument("--calibration", metavar="FILE", help="calibration file (default ./calibration.json)")
-    src.add_argument("--ratio", type=positive_number("the ratio T_int/T_step"), metavar="R",
-                     help="use your own T_int/T_step for the laws")
+    add_constants_options(sp, "use your own T_int/T_step for the laws",
+                          "calibration file (default ./calibration.json)")
     sp.set_defaults(func=cmd_paper)
     return sp
 
@@ -439,9 +437,9 @@ def cmd_paper(args) -> int:
     import json
 
     from .cli import _Progress
-    from .predict import _constants_from_args, resolve_constants
+    from .predict import constants_from_args, resolve_constants
 
-    src = _constants_from_args(args)
+    src = constants_from_args(args)
     r = resolve_constants(**src).ratio
     with _Progress(not args.quiet and sys.stderr.isatty(), "measuring") as bar:
         report = run_paper(ratio=r, quick=args.quick, progress=bar, status=bar.status)

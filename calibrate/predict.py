@@ -819,24 +819,26 @@ def json_ready(x):
 # command line
 # ---------------------------------------------------------------------------------------
 
-_plain = json_ready  # the names render and paper import
+def add_constants_options(sp, ratio_help: str, calibration_help: str | None = None) -> None:
+    """The ``--calibration FILE | --ratio R`` pair every verb that predicts takes
+    (read back by :func:`constants_from_args`)."""
+    from .cli import positive_number
+
+    src = sp.add_mutually_exclusive_group()
+    src.add_argument("--calibration", metavar="FILE",
+                     help=calibration_help or f"calibration file (default ./{DEFAULT_CALIBRATION} when it exists)")
+    src.add_argument("--ratio", type=positive_number("the ratio T_int/T_step"), metavar="R", help=ratio_help)
 
 
 def add_parser(sub):
     """Register the ``predict`` verb on an argparse subparsers object; returns its parser."""
-    from .cli import positive_number
-
     help_text = "predict the optimal uniform or nested grid for a mesh and its cost per ray"
     sp = sub.add_parser("predict", help=help_text, description=help_text)
     sp.add_argument("--json", action="store_true", help="machine-readable output on stdout")
     sp.add_argument("--quiet", action="store_true", help="no progress bar")
     sp.add_argument("mesh", nargs="?", default=DEFAULT_SCENE, metavar="MESH|SCENE",
                     help=f"a mesh file or a built-in scene's name (default {DEFAULT_SCENE})")
-    src = sp.add_mutually_exclusive_group()
-    src.add_argument("--calibration", metavar="FILE",
-                     help=f"calibration file (default ./{DEFAULT_CALIBRATION} when it exists)")
-    src.add_argument("--ratio", type=positive_number("the ratio T_int/T_step"), metavar="R",
-                     help="predict from your own T_int/T_step alone; costs then in units of T_step")
+    add_constants_options(sp, "predict from your own T_int/T_step alone; costs then in units of T_step")
     sp.add_argument("--fidelity", default="analytic", choices=FIDELITIES)
     sp.add_argument("--levels", default="auto", choices=LEVEL_CHOICES)
     sp.add_argument("--rays", default="isotropic", choices=RAY_KINDS)
@@ -862,7 +864,6 @@ def constants_from_args(args) -> dict:
                 constants={f"{n}_ns": getattr(k, n) for n in ("t_setup", "t_step", "t_int", "t_sub")})
 
 
-_constants_from_args = constants_from_args  # the name render and paper import
 
 
 def cmd_predict(args) -> int:

@@ -256,8 +256,7 @@ def summary(result: dict, out=None) -> dict:
 
 def add_parser(sub):
     """Register the ``render`` verb on an argparse subparsers object; returns its parser."""
-    from .cli import positive_number
-    from .predict import LEVEL_CHOICES
+    from .predict import LEVEL_CHOICES, add_constants_options
 
     help_text = "render a scene through the grid: shaded, or a per-pixel heatmap of steps or tests per ray"
     sp = sub.add_parser("render", help=help_text, description=help_text)
@@ -277,10 +276,8 @@ def add_parser(sub):
                     help=f"pixels (default {DEFAULT_HEIGHT})")
     sp.add_argument("--view", nargs=3, type=float, metavar=("DX", "DY", "DZ"),
                     help="direction the camera looks along, towards the box centre (up is +z)")
-    src = sp.add_mutually_exclusive_group()
-    src.add_argument("--calibration", metavar="FILE", help="calibration file (default ./calibration.json)")
-    src.add_argument("--ratio", type=positive_number("the ratio T_int/T_step"), metavar="R",
-                     help="recommend the grid from your own T_int/T_step alone")
+    add_constants_options(sp, "recommend the grid from your own T_int/T_step alone",
+                          "calibration file (default ./calibration.json)")
     sp.set_defaults(func=cmd_render)
     return sp
 
@@ -289,7 +286,7 @@ def cmd_render(args) -> int:
     """Run the ``render`` verb."""
     import json
 
-    from .predict import _constants_from_args
+    from .predict import constants_from_args
 
     out = Path(args.out)
     _check_out(out)
@@ -300,7 +297,7 @@ def cmd_render(args) -> int:
         if not (np.all(np.isfinite(v)) and np.any(v != 0)):
             raise UserError(f"--view must be a finite non-zero 3-vector DX DY DZ, got {' '.join(map(str, args.view))}")
     scene = Scene.load(args.mesh)
-    src = {} if args.resolution is not None else _constants_from_args(args)
+    src = {} if args.resolution is not None else constants_from_args(args)
     if not args.quiet and not args.json and sys.stderr.isatty():
         print(f"rendering {scene.name} ({scene.n_triangles:,} triangles) at {width}x{height} ...", file=sys.stderr)
     result = render(scene, width=width, height=height, resolution=args.resolution, levels=args.levels,

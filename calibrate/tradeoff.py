@@ -431,9 +431,9 @@ def tradeoff(scenes=None, *, budget_s: float | None = None, quick: bool = False,
 
 
 def _plain(x):
-    from .predict import _plain as plain
+    from .predict import json_ready  # imported late: predict is heavy to import
 
-    return plain(x)
+    return json_ready(x)
 
 
 # ---------------------------------------------------------------------------------------
