@@ -400,7 +400,7 @@ def cmd_compare(args) -> int:
     names = args.meshes or builtin_names()
     scenes = [Scene.load(name) for name in names]  # every input checked before anything is measured
     results, skipped = [], []
-    with _Progress(not args.quiet and sys.stderr.isatty(), "comparing") as bar:
+    with _Progress(not args.quiet, "comparing") as bar:
         for i, scene in enumerate(scenes):
             def status(text, i=i):
                 bar.status(f"[{i + 1}/{len(scenes)}] {text}")

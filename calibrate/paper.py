@@ -441,7 +441,7 @@ def cmd_paper(args) -> int:
 
     src = constants_from_args(args)
     r = resolve_constants(**src).ratio
-    with _Progress(not args.quiet and sys.stderr.isatty(), "measuring") as bar:
+    with _Progress(not args.quiet, "measuring") as bar:
         report = run_paper(ratio=r, quick=args.quick, progress=bar, status=bar.status)
     if args.json:
         sys.stdout.write(json.dumps(report, indent=2, allow_nan=False) + "\n")
