@@ -22,8 +22,12 @@ Schema (version :data:`SCHEMA_VERSION`), one JSON object::
          "intersector": str | null, "rays": int, "steps": int, "tests": int,
          "subgrids": int, "values_ns": [ns per batch, ...], ...extra keys kept}
       ],
-      "meta": {...}                     # free-form (tool version, budget, wall time, ...)
-    }
+      "meta": {...},                    # free-form (tool version, budget, wall time, ...)
+      "by_rays": {                      # optional: the same fit on one ray set's in-context
+        "camera": {"constants": {...}, "samples": {...}, "diagnostics": {...}},
+        "isotropic": {...}              #   measurements alone (coherent rays step for about
+      }                                 #   half the cost of incoherent ones); predictions for
+    }                                   #   that ray set use it, others use ``constants``
 
 Constants are in ns per unit (ray, cell step, triangle test, subgrid entry).
 :func:`load` validates everything and raises :class:`calibrate._io.UserError`
@@ -49,9 +53,12 @@ __all__ = [
     "constants_json",
     "design_from_measurements",
     "dumps",
+    "fit_by_rays",
+    "fit_for_rays",
     "from_fit",
     "load",
     "loads",
+    "ray_sets",
     "refit",
     "samples_by_name",
     "save",
@@ -66,6 +73,8 @@ REQUIRED_CONSTANTS = ("t_setup_ns", "t_step_ns", "t_int_ns", _fit.RATIO_NAME)
 SCATTER_COLUMN = "extra_scatter"
 SAMPLE_COLUMNS = _fit.CONSTANT_NAMES + (SCATTER_COLUMN,)
 REQUIRED_TOP_KEYS = ("schema_version", "fingerprint", "constants", "samples", "diagnostics", "measurements")
+# Keys of one entry of the optional ``by_rays`` block (a fit on one ray set alone).
+BY_RAYS_KEYS = ("constants", "samples", "diagnostics")
 # Posterior samples stored in the file at most (evenly thinned beyond this):
 # the 2.5th percentile of 2000 draws has a standard error of
 # sqrt(0.025 * 0.975 / 2000) = 0.35 percentile points, ample for intervals.
@@ -251,6 +260,16 @@ def _validate_measurement(m, where: str) -> None:
             _fail(f"{where}.values_ns[{i}]", f"negative time {v:g}")
 
 
+def _validate_fit(obj: Mapping, prefix: str) -> None:
+    """constants, samples and diagnostics of one fit (the file's own, or one of ``by_rays``)."""
+    _validate_constants(obj["constants"], f"{prefix}constants", partial=False)
+    _validate_samples(obj["samples"], f"{prefix}samples", obj["constants"])
+    diag = _object(obj["diagnostics"], f"{prefix}diagnostics")
+    if "converged" in diag and diag["converged"] is not True:
+        _fail(f"{prefix}diagnostics.converged",
+              "is not true: the posterior did not converge, so the constants are not a result")
+
+
 def validate(cal: Any) -> dict:
     """Check a calibration object against the schema; return it unchanged.
 
@@ -273,12 +292,21 @@ def validate(cal: Any) -> dict:
     if ver < 1:
         _fail("schema_version", f"must be >= 1, got {ver}")
     _object(cal["fingerprint"], "fingerprint")
-    _validate_constants(cal["constants"], "constants", partial=False)
+    _validate_fit(cal, "")
     _validate_constants(cal.get("isolated", {}), "isolated", partial=True)
-    _validate_samples(cal["samples"], "samples", cal["constants"])
-    diag = _object(cal["diagnostics"], "diagnostics")
-    if "converged" in diag and diag["converged"] is not True:
-        _fail("diagnostics.converged", "is not true: the posterior did not converge, so the constants are not a result")
+    if "by_rays" in cal:
+        for ray_set, entry in _object(cal["by_rays"], "by_rays").items():
+            where = f"by_rays.{ray_set}"
+            if not ray_set:
+                _fail("by_rays", "a ray set's name must not be empty")
+            entry = _object(entry, where)
+            for key in BY_RAYS_KEYS:
+                if key not in entry:
+                    _fail(where, f"missing key {key!r}")
+            for key in entry:
+                if key not in BY_RAYS_KEYS:
+                    _fail(where, f"unknown key {key!r} (known: {', '.join(BY_RAYS_KEYS)})")
+            _validate_fit(entry, f"{where}.")
     meas = cal["measurements"]
     if not isinstance(meas, list):
         _fail("measurements", f"must be an array, got {_json_type(meas)}")
@@ -398,6 +426,7 @@ def from_fit(
     measurements: list,
     isolated: Mapping | None = None,
     meta: Mapping | None = None,
+    by_rays: Mapping[str, _fit.FitResult] | None = None,
 ) -> dict:
     """Assemble a calibration object from a fit and the raw measurements.
 
@@ -405,27 +434,47 @@ def from_fit(
     fingerprint : host facts (free-form JSON object).
     measurements : list of measurement records (see the module docstring).
     isolated : partial constants from isolating microbenchmarks ({} if none).
+    by_rays : optional ray set -> FitResult of that ray set's in-context
+        measurements alone (stored under ``by_rays``).
     Returns a validated, JSON-ready dict.
     """
     cal = {
         "schema_version": SCHEMA_VERSION,
         "fingerprint": dict(fingerprint),
-        "constants": constants_json(result),
+        **_fit_block(result),
         "isolated": dict(isolated or {}),
-        "samples": _stored_samples(result),
-        "diagnostics": dict(result.diagnostics),
         "measurements": list(measurements),
         "meta": dict(meta or {}),
     }
+    if by_rays:
+        cal["by_rays"] = {name: _fit_block(res) for name, res in by_rays.items()}
     cal = _plain(cal)
     return validate(cal)
+
+
+def _fit_block(result: _fit.FitResult) -> dict:
+    return {"constants": constants_json(result), "samples": _stored_samples(result),
+            "diagnostics": dict(result.diagnostics)}
+
+
+def fit_for_rays(cal: Mapping, rays: str | None) -> tuple[Mapping, str | None]:
+    """The fit a prediction for ``rays`` should use: (object with ``constants``,
+    ``samples`` and ``diagnostics``, the ray set it was fitted on or None).
+
+    A calibration with a ``by_rays`` entry for ``rays`` gives that entry (the
+    constants of that ray set alone); otherwise the fit of all in-context
+    measurements, ``cal`` itself, with None.
+    """
+    entry = (cal.get("by_rays") or {}).get(rays) if rays else None
+    return (entry, rays) if entry is not None else (cal, None)
 
 
 def samples_by_name(cal: Mapping) -> dict[str, np.ndarray]:
     """Posterior samples of a (validated) calibration as name -> (S,) float arrays.
 
     Names are the stored columns (``t_setup_ns`` ... in ns, ``extra_scatter``
-    in log units) plus ``ratio`` = T_int / T_step.
+    in log units) plus ``ratio`` = T_int / T_step. ``cal`` may also be one
+    entry of ``by_rays`` (see :func:`fit_for_rays`).
     """
     cols = cal["samples"]["columns"]
     values = np.asarray(cal["samples"]["values"], dtype=float).reshape(-1, len(cols))
@@ -489,10 +538,45 @@ def refit(cal: Mapping, *, seed: int = 0, intersector: str | None = None, **fit_
         except (TypeError, ValueError, IndexError):
             raise UserError("diagnostics.priors: must map constant names to [median_ns, sigma_log]") from None
     result = _fit.fit(design, seed=seed, **fit_kwargs)
+    by_rays, skipped = fit_by_rays(cal["measurements"], seed=seed, intersector=intersector, **fit_kwargs)
+    meta = {k: v for k, v in cal.get("meta", {}).items() if k != "by_rays_skipped"}
+    if skipped:
+        meta["by_rays_skipped"] = skipped
     return from_fit(
         result,
         fingerprint=cal["fingerprint"],
         measurements=cal["measurements"],
         isolated=cal.get("isolated", {}),
-        meta=cal.get("meta", {}),
+        meta=meta,
+        by_rays=by_rays,
     )
+
+
+def ray_sets(measurements: list) -> list[str]:
+    """The ray sets (``ray_set`` key) of in-context measurements, sorted; [] if unnamed."""
+    return sorted({str(m["ray_set"]) for m in measurements
+                   if m["kind"] == "in_context" and m.get("ray_set") and m["values_ns"]})
+
+
+def fit_by_rays(measurements: list, *, seed: int = 0, intersector: str | None = None,
+                **fit_kwargs) -> tuple[dict, dict]:
+    """Fit each ray set's in-context measurements alone (when there are two or more sets).
+
+    Rays of one set share a coherence: camera rays step in lockstep through
+    neighbouring cells, isotropic ones do not, and a cell step of an incoherent
+    ray costs about twice as much (docs/calibration.md), so one set of
+    constants for both fits neither well.
+    Returns ({ray set: FitResult}, {ray set: why it was not fitted alone}).
+    """
+    fits, skipped = {}, {}
+    names = ray_sets(measurements)
+    if len(names) < 2:
+        return fits, skipped
+    for name in names:
+        chosen = [m for m in measurements if m["kind"] == "in_context" and m.get("ray_set") == name]
+        try:
+            design = design_from_measurements(chosen, "in_context", intersector)
+            fits[name] = _fit.fit(design, seed=seed, **fit_kwargs)
+        except (ValueError, _fit.ConvergenceError) as exc:
+            skipped[name] = str(exc)
+    return fits, skipped

@@ -128,6 +128,35 @@ CONSTANT_LABELS = [("t_setup_ns", "T_setup (ns/ray)"), ("t_step_ns", "T_step (ns
                    ("ratio", "r = T_int/T_step")]
 
 
+def _ratio_line(r: dict, label: str = "r = T_int/T_step") -> str:
+    half = 0.5 * (r["ci95"][1] - r["ci95"][0]) / r["median"]
+    return (f"{label} = {r['median']:.3f}, 95% interval [{r['ci95'][0]:.3f}, {r['ci95'][1]:.3f}] "
+            f"(half-width {100 * half:.1f}% of the median)")
+
+
+def _by_rays_table(cal: dict, title: str):
+    """The constants of each ray set fitted alone (``by_rays``), or None when there are none."""
+    from rich.table import Table
+
+    by_rays = cal.get("by_rays") or {}
+    if not by_rays:
+        return None
+    mare = (cal.get("meta") or {}).get("holdout_mare_by_rays") or {}
+    table = Table(title=title)
+    table.add_column("constant")
+    for name in by_rays:
+        table.add_column(f"{name} rays: median [95%]", justify="right")
+    for key, label in CONSTANT_LABELS:
+        cells = []
+        for entry in by_rays.values():
+            est = entry["constants"].get(key)
+            cells.append("-" if est is None else f"{est['median']:.4g} {_fmt_est(est)[2]}")
+        table.add_row(label, *cells)
+    if mare:
+        table.add_row("held-back error (median)", *[f"{100 * mare[n]:.1f}%" if n in mare else "-" for n in by_rays])
+    return table
+
+
 def _constants_table(cal: dict, title: str):
     from rich.table import Table
 
@@ -161,16 +190,24 @@ def cmd_run(args) -> int:
     cal = result.calibration
     if args.json:
         _print_json(dict(constants=cal["constants"], wall_s=result.wall_s, holdout_mare=result.holdout_mare,
+                         holdout_mare_pooled=result.holdout_mare_pooled,
+                         holdout_mare_by_rays=result.holdout_mare_by_rays or {},
+                         constants_by_rays={n: e["constants"] for n, e in (cal.get("by_rays") or {}).items()},
                          ratio_rel_width=result.ratio_rel_width, out=str(out)))
         return 0
-    console.print(_constants_table(cal, f"calibration of this host ({cal['meta']['intersector']} intersector)"))
-    r = cal["constants"]["ratio"]
-    half = 0.5 * (r["ci95"][1] - r["ci95"][0]) / r["median"]
-    console.print(f"r = T_int/T_step = {r['median']:.3f}, 95% interval [{r['ci95'][0]:.3f}, {r['ci95'][1]:.3f}] "
-                  f"(half-width {100 * half:.1f}% of the median)")
+    console.print(_constants_table(cal, f"calibration of this host ({cal['meta']['intersector']} intersector), "
+                                        "all ray sets"))
+    console.print(_ratio_line(cal["constants"]["ratio"]))
+    table = _by_rays_table(cal, "each ray set fitted alone (what predict --rays uses)")
+    if table is not None:
+        console.print(table)
+        for name, entry in cal["by_rays"].items():
+            console.print(_ratio_line(entry["constants"]["ratio"], f"{name} rays: r"))
     n_held = sum(1 for m in cal["measurements"] if m.get("held_back"))
     console.print(f"held-back configurations ({n_held}): median absolute relative error of predicted batch "
-                  f"times {100 * result.holdout_mare:.1f}%")
+                  f"times {100 * result.holdout_mare:.1f}%"
+                  + (f" (each by its ray set's constants; by the pooled constants "
+                     f"{100 * result.holdout_mare_pooled:.1f}%)" if result.holdout_mare_by_rays else ""))
     console.print(f"wall time {time.monotonic() - t0:.1f} s; written to {out}")
     for w in result.warnings[:10]:
         _console(stderr=True).print(f"[yellow]warning:[/yellow] {w}")
@@ -191,9 +228,14 @@ def cmd_fit(args) -> int:
         new = calfile.refit(cal, seed=args.seed)
     calfile.save(out, new)
     if args.json:
-        _print_json(dict(constants=new["constants"], out=str(out)))
+        _print_json(dict(constants=new["constants"],
+                         constants_by_rays={n: e["constants"] for n, e in (new.get("by_rays") or {}).items()},
+                         out=str(out)))
     else:
         _console().print(_constants_table(new, f"re-fit of {src.name}"))
+        table = _by_rays_table(new, "each ray set fitted alone")
+        if table is not None:
+            _console().print(table)
         _console().print(f"written to {out}")
     return 0
 
@@ -213,16 +255,23 @@ def cmd_show(args) -> int:
         written = []
     if args.json:
         _print_json(dict(constants=cal["constants"], isolated=cal.get("isolated", {}),
+                         constants_by_rays={n: e["constants"] for n, e in (cal.get("by_rays") or {}).items()},
                          diagnostics=cal["diagnostics"], meta=cal.get("meta", {}), plots=[str(p) for p in written]))
         return 0
     console = _console()
     console.print(_constants_table(cal, f"{args.file}"))
+    table = _by_rays_table(cal, "each ray set fitted alone (what predict --rays uses)")
+    if table is not None:
+        console.print(table)
     fp = cal["fingerprint"]
     console.print(f"host: {fp.get('cpu_model')}, {fp.get('logical_cores')} cores, governor {fp.get('governor')}, "
                   f"measured {fp.get('date_utc')}")
     meta = cal.get("meta", {})
-    if "holdout_mare" in meta:
-        console.print(f"held-back median absolute relative error: {100 * meta['holdout_mare']:.1f}%")
+    if meta.get("holdout_mare") is not None:
+        console.print(f"held-back median absolute relative error: {100 * meta['holdout_mare']:.1f}%"
+                      + (f" (pooled constants: {100 * meta['holdout_mare_pooled']:.1f}%)"
+                         if meta.get("holdout_mare_pooled") is not None and meta.get("holdout_mare_by_rays")
+                         else ""))
     d = cal["diagnostics"]
     console.print(f"posterior: {d.get('n_steps')} steps, acceptance {d.get('acceptance', float('nan')):.2f}, "
                   f"converged {d.get('converged')}")

@@ -391,7 +391,7 @@ def cmd_compare(args) -> int:
     from .cli import _Progress
     from .scenes import builtin_names
 
-    src = _predict.constants_from_args(args)
+    src = _predict.constants_from_args(args, rays=args.rays)
     if args.plot:
         plot_path = Path(args.plot)
         if not plot_path.is_dir() and plot_path.suffix.lower() != ".png":

@@ -439,18 +439,22 @@ def _constant_block(macro, what, unit, value, interval, source) -> str:
             f"#ifndef {macro}\n#define {macro} {_c_double(value)}\n#endif\n")
 
 
-def header_constants(cal: dict | None = None, ratio: float | None = None) -> dict:
+def header_constants(cal: dict | None = None, ratio: float | None = None, rays: str | None = None) -> dict:
     """``{key: {macro, unit, median, ci95}}`` of the constants the header defines.
 
     cal : a validated calibration (calibrate.calfile.load), or ratio : r alone.
+    rays : the ray set to export for: the calibration's fit of that set alone when
+        it has one (``by_rays``, as ``predict --rays`` uses), else its pooled fit.
     """
+    from .calfile import fit_for_rays
+
     out = {}
     if cal is None:
         if ratio is None or not (math.isfinite(float(ratio)) and float(ratio) > 0):
             raise ValueError("give a calibration or a ratio r > 0")
         key, macro, _, unit = CONSTANTS[-1]
         return {key: dict(macro=macro, unit=unit, median=float(ratio), ci95=None)}
-    consts = cal["constants"]
+    consts = fit_for_rays(cal, rays)[0]["constants"]
     for key, macro, _, unit in CONSTANTS:
         c = consts.get(key)
         if c is None:
@@ -465,13 +469,18 @@ def header_constants(cal: dict | None = None, ratio: float | None = None) -> dic
     return out
 
 
-def header_text(cal: dict | None = None, ratio: float | None = None, source: str | None = None) -> str:
+def header_text(cal: dict | None = None, ratio: float | None = None, source: str | None = None,
+                rays: str | None = None) -> str:
     """The complete header (str) for a calibration or a ratio alone.
 
     cal : validated calibration dict; ratio : r > 0 (when cal is None);
-    source : the calibration file's name, shown in the provenance.
+    source : the calibration file's name, shown in the provenance;
+    rays : the ray set exported for (see :func:`header_constants`).
     """
-    consts = header_constants(cal, ratio)
+    from .calfile import fit_for_rays
+
+    consts = header_constants(cal, ratio, rays)
+    fitted_on = None if cal is None else fit_for_rays(cal, rays)[1]
     lines = ["/* grid_tuning.h: grid resolutions for this host, from gridcal's `calibrate export`.",
              " *",
              " * Provenance:"]
@@ -486,7 +495,8 @@ def header_text(cal: dict | None = None, ratio: float | None = None, source: str
         for key, label in PROVENANCE_KEYS:
             if fp.get(key) is not None:
                 lines.append(f" *   {label}: {sanitize_comment(fp[key])}")
-        diag = cal.get("diagnostics") or {}
+        lines.append(f" *   constants fitted on: {sanitize_comment(fitted_on) + ' rays alone' if fitted_on else 'all ray sets'}")
+        diag = (fit_for_rays(cal, rays)[0].get("diagnostics")) or {}
         if diag.get("converged") is not None:
             lines.append(f" *   posterior converged: {sanitize_comment(diag.get('converged'))}")
     lines += [" *",
@@ -510,7 +520,9 @@ def header_text(cal: dict | None = None, ratio: float | None = None, source: str
               "#include <math.h>",
               ""]
     text = "\n".join(lines) + "\n"
-    source_note = "median of the posterior (in-context fit)" if cal is not None else "given with --ratio"
+    source_note = "given with --ratio" if cal is None else (
+        f"median of the posterior (in-context fit, {sanitize_comment(fitted_on)} rays)" if fitted_on
+        else "median of the posterior (in-context fit)")
     for key, macro, what, unit in CONSTANTS:
         if key not in consts:
             if cal is not None and key == "t_sub_ns":
@@ -523,11 +535,13 @@ def header_text(cal: dict | None = None, ratio: float | None = None, source: str
     return text
 
 
-def export(path=DEFAULT_HEADER, *, calibration=None, ratio=None) -> dict:
-    """Write the header atomically; return ``{header, constants, functions}``.
+def export(path=DEFAULT_HEADER, *, calibration=None, ratio=None, rays: str | None = "isotropic") -> dict:
+    """Write the header atomically; return ``{header, constants, fitted_on, functions}``.
 
     calibration : path of a calibration file (default ./calibration.json when ratio is None).
     ratio : r = T_int / T_step alone.
+    rays : the ray set the resolutions are for (default isotropic, as ``predict``); the
+        calibration's fit of that set alone when it has one, else its pooled fit.
     """
     from . import calfile
 
@@ -540,10 +554,11 @@ def export(path=DEFAULT_HEADER, *, calibration=None, ratio=None) -> dict:
             raise UserError(f"no calibration: ./{DEFAULT_CALIBRATION} does not exist; run `calibrate run` first, "
                             "pass --calibration FILE, or give your own ratio with --ratio R")
         cal = calfile.load(source)
-    text = header_text(cal, ratio, source=None if source is None else source.name)
+    text = header_text(cal, ratio, source=None if source is None else source.name, rays=rays)
     out = Path(path)
     atomic_write_text(out, text, encoding="ascii")
-    return dict(header=str(out), constants=header_constants(cal, ratio), functions=list(FUNCTIONS))
+    return dict(header=str(out), constants=header_constants(cal, ratio, rays),
+                fitted_on=None if cal is None else calfile.fit_for_rays(cal, rays)[1], functions=list(FUNCTIONS))
 
 
 # ---------------------------------------------------------------------------------------
@@ -552,7 +567,7 @@ def export(path=DEFAULT_HEADER, *, calibration=None, ratio=None) -> dict:
 
 def add_parser(sub):
     """Register the ``export`` verb on an argparse subparsers object; returns its parser."""
-    from .predict import add_constants_options
+    from .predict import RAY_KINDS, add_constants_options
 
     help_text = "write this host's constants and grid-resolution functions as a C header"
     sp = sub.add_parser("export", help=help_text, description=help_text)
@@ -561,13 +576,16 @@ def add_parser(sub):
     add_constants_options(sp, "export your own T_int/T_step alone (no time constants)")
     sp.add_argument("--header", default=DEFAULT_HEADER, metavar="FILE",
                     help=f"header to write (default {DEFAULT_HEADER})")
+    sp.add_argument("--rays", default="isotropic", choices=RAY_KINDS,
+                    help="the rays your renderer traces: a calibration that fitted that ray set alone gives "
+                         "its constants (default isotropic, as predict)")
     sp.set_defaults(func=cmd_export)
     return sp
 
 
 def cmd_export(args) -> int:
     """Run the ``export`` verb."""
-    result = export(args.header, calibration=args.calibration, ratio=args.ratio)
+    result = export(args.header, calibration=args.calibration, ratio=args.ratio, rays=args.rays)
     if args.json:
         sys.stdout.write(json.dumps(result, indent=2, allow_nan=False) + "\n")
     elif not args.quiet:

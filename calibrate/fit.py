@@ -840,13 +840,18 @@ def holdout_error(result: FitResult, design: Mapping) -> float:
     Prediction: median over posterior samples; measurement: median of repeats.
     Returns a float, e.g. 0.03 for 3%.
     """
+    return float(np.median(holdout_errors(result, design)))
+
+
+def holdout_errors(result: FitResult, design: Mapping) -> np.ndarray:
+    """Absolute relative error of each held-back configuration, (J,) (see :func:`holdout_error`)."""
     pred = np.median(predict_batch_times(result.samples, result.names, design), axis=0)
     if "subgrids" in design and design["subgrids"] is not None and "t_sub_ns" not in result.names:
         if np.any(np.asarray(design["subgrids"]) > 0):
             raise ValueError("held-back configurations enter subgrids but T_sub was not fitted")
     times = _as_times(design["times_ns"], pred.shape[0])
     measured = np.array([np.median(r) for r in times])
-    return float(np.median(np.abs(pred / measured - 1.0)))
+    return np.abs(pred / measured - 1.0)
 
 
 def split_design(design: Mapping, holdout_fraction: float, rng: np.random.Generator):

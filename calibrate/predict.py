@@ -131,15 +131,17 @@ class Constants:
 
     Attributes: ``t_setup, t_step, t_int, t_sub`` (floats, medians) and
     ``samples`` (dict name -> (S,) float64, same names without ``_ns``);
-    ``units`` is ``"ns"`` or ``"T_step"`` (ratio mode); ``notes`` lists assumptions.
+    ``units`` is ``"ns"`` or ``"T_step"`` (ratio mode); ``notes`` lists assumptions;
+    ``fitted_on`` is the ray set the constants were fitted on alone, or None (all of them).
     """
 
-    def __init__(self, t_setup, t_step, t_int, t_sub, samples, units, notes):
+    def __init__(self, t_setup, t_step, t_int, t_sub, samples, units, notes, fitted_on=None):
         self.t_setup, self.t_step, self.t_int, self.t_sub = (float(t_setup), float(t_step), float(t_int),
                                                              float(t_sub))
         self.samples = samples
         self.units = units
         self.notes = notes
+        self.fitted_on = fitted_on
 
     @property
     def ratio(self) -> float:
@@ -171,7 +173,8 @@ def resolve_constants(constants=None, samples=None, ratio=None) -> Constants:
     """Constants from a calibration's medians/samples or from a ratio alone.
 
     constants : mapping ``t_setup_ns, t_step_ns, t_int_ns[, t_sub_ns]`` -> ns (a float or
-        a ``{"median": ...}`` block, e.g. a calibration's ``constants``).
+        a ``{"median": ...}`` block, e.g. a calibration's ``constants``); an optional
+        ``fitted_on`` names the ray set they were fitted on alone (a note says so).
     samples : mapping of the same names -> (S,) posterior samples (ns), e.g.
         :func:`calibrate.calfile.samples_by_name`; medians default to theirs.
     ratio : ``T_int / T_step`` > 0 (no calibration; costs in units of T_step).
@@ -221,6 +224,11 @@ def resolve_constants(constants=None, samples=None, ratio=None) -> Constants:
             raise ValueError(f"the calibration lacks {n}_ns")
     if not (med["t_step"] > 0 and med["t_int"] > 0):
         raise ValueError("t_step_ns and t_int_ns must be > 0")
+    fitted_on = None if constants is None else constants.get("fitted_on")
+    if fitted_on is not None and not (isinstance(fitted_on, str) and fitted_on):
+        raise ValueError(f"fitted_on must name a ray set, got {fitted_on!r}")
+    if fitted_on is not None:
+        notes.append(f"constants fitted on the calibration's {fitted_on} rays alone")
     if "t_sub" not in med:
         med["t_sub"] = RATIO_MODE_T_SUB_IN_T_STEP * med["t_step"]
         notes.append(f"the calibration has no T_sub: assumed {RATIO_MODE_T_SUB_IN_T_STEP:g} x T_step")
@@ -230,18 +238,25 @@ def resolve_constants(constants=None, samples=None, ratio=None) -> Constants:
             arrays[n] = np.full(size, med[n])
     if np.any(arrays["t_step"] <= 0) or np.any(arrays["t_int"] <= 0):
         raise ValueError("posterior samples of t_step_ns and t_int_ns must be > 0")
-    return Constants(med["t_setup"], med["t_step"], med["t_int"], med["t_sub"], arrays, "ns", notes)
+    return Constants(med["t_setup"], med["t_step"], med["t_int"], med["t_sub"], arrays, "ns", notes,
+                     fitted_on=fitted_on)
 
 
-def load_calibration_constants(path) -> Constants:
-    """Constants of a calibration file (medians and posterior samples); UserError naming the file."""
+def load_calibration_constants(path, rays: str | None = None) -> Constants:
+    """Constants of a calibration file (medians and posterior samples); UserError naming the file.
+
+    rays : the ray set predicted for; a calibration that fitted that set alone
+        (``by_rays``) gives its constants, otherwise the pooled ones.
+    """
     from . import calfile
 
     p = Path(path)
     if not p.exists():
         raise UserError(f"{p}: no such calibration file; run `calibrate run` to create one, or pass --ratio R")
     cal = calfile.load(p)
-    return resolve_constants(constants=cal["constants"], samples=calfile.samples_by_name(cal))
+    block, fitted_on = calfile.fit_for_rays(cal, rays)
+    constants = dict(block["constants"], fitted_on=fitted_on) if fitted_on else block["constants"]
+    return resolve_constants(constants=constants, samples=calfile.samples_by_name(block))
 
 
 # ---------------------------------------------------------------------------------------
@@ -749,7 +764,8 @@ def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analyt
     base, base_detail = _baseline_table(stats, k, terms)
     out = dict(scene=scene.name, triangles=int(stats.n_triangles), scene_class=cls, scene_class_reason=cls_reason,
                fidelity=fidelity, units=k.units, rays=rays, mailbox=mailbox,
-               constants=dict(t_setup=k.t_setup, t_step=k.t_step, t_int=k.t_int, t_sub=k.t_sub, ratio=k.ratio),
+               constants=dict(t_setup=k.t_setup, t_step=k.t_step, t_int=k.t_int, t_sub=k.t_sub, ratio=k.ratio,
+                              fitted_on=k.fitted_on),
                levels=plan["levels"], memory_bytes=int(plan["memory_bytes"]), predicted=predicted,
                effects=effects, baselines=base, baselines_detail=base_detail, notes=notes)
     if "simulation" in plan:
@@ -847,9 +863,10 @@ def add_parser(sub):
     return sp
 
 
-def constants_from_args(args) -> dict:
+def constants_from_args(args, rays: str | None = None) -> dict:
     """The constants source of a verb's ``--ratio`` / ``--calibration`` arguments (``ratio=`` or
-    ``samples=`` and ``constants=`` for :func:`predict`); no calibration file raises UserError."""
+    ``samples=`` and ``constants=`` for :func:`predict`); no calibration file raises UserError.
+    ``rays`` picks the calibration's fit of that ray set alone when it has one."""
     if getattr(args, "ratio", None) is not None:
         return dict(ratio=args.ratio)
     path = Path(args.calibration) if getattr(args, "calibration", None) else Path(DEFAULT_CALIBRATION)
@@ -858,10 +875,12 @@ def constants_from_args(args) -> dict:
             raise UserError(f"{path}: no such calibration file; run `calibrate run` to create one, or pass --ratio R")
         raise UserError(f"no calibration: ./{DEFAULT_CALIBRATION} does not exist; run `calibrate run` first, "
                         "pass --calibration FILE, or give your own ratio with --ratio R")
-    k = load_calibration_constants(path)
+    k = load_calibration_constants(path, rays)
     s = k.samples
-    return dict(samples={f"{n}_ns": s[n] for n in ("t_setup", "t_step", "t_int", "t_sub")},
-                constants={f"{n}_ns": getattr(k, n) for n in ("t_setup", "t_step", "t_int", "t_sub")})
+    constants = {f"{n}_ns": getattr(k, n) for n in ("t_setup", "t_step", "t_int", "t_sub")}
+    if k.fitted_on:
+        constants["fitted_on"] = k.fitted_on
+    return dict(samples={f"{n}_ns": s[n] for n in ("t_setup", "t_step", "t_int", "t_sub")}, constants=constants)
 
 
 
@@ -873,7 +892,7 @@ def cmd_predict(args) -> int:
 
     from .cli import _stderr_is_tty
 
-    src = constants_from_args(args)
+    src = constants_from_args(args, rays=args.rays)
     scene = Scene.load(args.mesh)
     try:  # a scene the statistics reject fails here, naming the file, before any progress line
         scene.stats  # noqa: B018

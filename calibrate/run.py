@@ -44,8 +44,9 @@ MIN_VALUE_NS = 10_000_000
 WARMUPS = 1
 #: Fraction of in-context configurations held back from the fit to test its predictions.
 HOLDOUT_FRACTION = 0.2
-#: Share of the budget kept for fitting after the last stage.
-FIT_RESERVE_S = 6.0
+#: Share of the budget kept for fitting after the last stage (the pooled fit, then one
+#: per ray set).
+FIT_RESERVE_S = 9.0
 #: Shortest budget accepted, seconds: the fitting reserve plus a few seconds of measuring
 #: (the first stage times every configuration FIRST_ROUNDS times).
 MIN_BUDGET_S = FIT_RESERVE_S + 4.0
@@ -85,6 +86,8 @@ class RunResult:
     holdout_mare: float
     ratio_rel_width: float
     warnings: list
+    holdout_mare_pooled: float = float("nan")
+    holdout_mare_by_rays: dict | None = None
 
 
 def partial_path(out: Path) -> Path:
@@ -144,14 +147,40 @@ def records(configs, timings: dict, held: set) -> list:
     return out
 
 
-def _fit_stage(recs, seed, isolated):
-    design = calfile.design_from_measurements(recs, "in_context")
+def _priors(isolated):
     priors = {}
     for name in PRIOR_FROM_ISOLATED:
         est = (isolated or {}).get(name)
         if est:
             priors[name] = (est["median"], ISOLATED_PRIOR_SIGMA_LOG)
-    return _fit.fit(design, seed=seed, priors=priors)
+    return priors
+
+
+def _fit_stage(recs, seed, isolated):
+    design = calfile.design_from_measurements(recs, "in_context")
+    return _fit.fit(design, seed=seed, priors=_priors(isolated))
+
+
+def _holdout(result, by_rays, recs):
+    """Held-back errors: (MARE of the predictions the file gives, pooled fit's MARE, {ray set: MARE}).
+
+    A held-back configuration is predicted by its ray set's own fit when there is
+    one (as ``predict --rays`` does), else by the pooled fit.
+    """
+    held = [r for r in recs if r["held_back"] and r["values_ns"]]
+    if not held:
+        return float("nan"), float("nan"), {}
+    pooled = _fit.holdout_errors(result, calfile.design_from_measurements(held, "in_context",
+                                                                          include_held_back=True))
+    errors, by_set = [], {}
+    for name in sorted({r.get("ray_set") for r in held}, key=str):
+        group = [r for r in held if r.get("ray_set") == name]
+        fit = by_rays.get(name, result)
+        e = _fit.holdout_errors(fit, calfile.design_from_measurements(group, "in_context", include_held_back=True))
+        errors.extend(e)
+        if name in by_rays:
+            by_set[name] = float(np.median(e))
+    return float(np.median(errors)), float(np.median(pooled)), by_set
 
 
 def _rel_width(result) -> float:
@@ -299,9 +328,11 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
                 break
             rounds += STAGE_ROUNDS
 
-        design_held = calfile.design_from_measurements(
-            [r for r in recs if r["held_back"]], "in_context", include_held_back=True)
-        mare = _fit.holdout_error(result, design_held)
+        status("fitting each ray set alone")
+        by_rays, skipped = calfile.fit_by_rays(recs, seed=seed, priors=_priors(isolated))
+        for name, why in skipped.items():
+            warnings.append(f"ray set {name}: not fitted alone, its predictions use the pooled constants ({why})")
+        mare, mare_pooled, mare_by_rays = _holdout(result, by_rays, recs)
         if iso_warning:
             warnings.append(iso_warning)
         cut = 0
@@ -317,16 +348,19 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
         wall = time.monotonic() - t_start
         meta = dict(tool="gridcal", budget_s=budget_s, target_rel_width=target_rel_width, seed=seed,
                     intersector=intersector, wall_s=wall, stages=stage, rounds=rounds,
-                    holdout_fraction=HOLDOUT_FRACTION, holdout_mare=mare,
+                    holdout_fraction=HOLDOUT_FRACTION, holdout_mare=mare, holdout_mare_pooled=mare_pooled,
+                    holdout_mare_by_rays=mare_by_rays,
                     ratio_rel_width=_rel_width(result), pinned_core=pin.core, pin_note=pin.note,
                     rays_per_batch=suites.RAYS_PER_BATCH, min_value_ns=MIN_VALUE_NS)
+        if skipped:
+            meta["by_rays_skipped"] = skipped
         from ._kernels import CFLAGS
 
         cal = calfile.from_fit(result, fingerprint=fingerprint(
             extra={"kernel_build": CFLAGS, "timing_clock": suites.TIMING_CLOCK}),
-                               measurements=recs, isolated=isolated, meta=meta)
+                               measurements=recs, isolated=isolated, meta=meta, by_rays=by_rays)
         calfile.save(out, cal)
         if part.exists():
             part.unlink()
     return RunResult(calibration=cal, wall_s=wall, holdout_mare=mare, ratio_rel_width=_rel_width(result),
-                     warnings=warnings)
+                     warnings=warnings, holdout_mare_pooled=mare_pooled, holdout_mare_by_rays=mare_by_rays)

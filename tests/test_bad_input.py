@@ -131,6 +131,9 @@ def fixture_files() -> dict[str, bytes]:
         "empty.json": b"",
         "binary.json": bytes(range(128, 256)),
         "unconverged.json": json.dumps({**_calibration(), "diagnostics": {"converged": False}}).encode(),
+        # a fit per ray set whose camera entry lost its posterior samples
+        "bad_by_rays.json": json.dumps({**_calibration(), "by_rays": {"camera": {
+            k: v for k, v in _calibration().items() if k in ("constants", "diagnostics")}}}).encode(),
         # existing outputs a failed write must leave alone
         "out.json": EXISTING,
         "locked.json": EXISTING,  # made read-only
@@ -314,6 +317,7 @@ CASES: list[Case] = [
     cli(OPTIONS, "ratio and calibration together", "export --ratio 1 --calibration good.json", "not allowed with"),
     cli(OPTIONS, "unknown fidelity", "predict --ratio 1 --fidelity exact", "invalid choice"),
     cli(OPTIONS, "unknown level count", "predict --ratio 1 --levels 9", "invalid choice"),
+    cli(OPTIONS, "unknown ray set", "export --ratio 1 --rays sideways", "invalid choice"),
     cli(OPTIONS, "unknown option", "scenes --colour", "unrecognized arguments: --colour"),
     cli(OPTIONS, "unknown verb", "calibrated", "invalid choice"),
     # -- calibration files ---------------------------------------------------------------------
@@ -332,6 +336,8 @@ CASES: list[Case] = [
     cli(CALFILE, "calibration whose posterior did not converge", "show unconverged.json",
         "the posterior did not converge"),
     cli(CALFILE, "calibration path is a directory", "show adir", "is a directory, not a calibration file"),
+    cli(CALFILE, "a ray set's fit without posterior samples", "predict --calibration bad_by_rays.json --rays camera",
+        "by_rays.camera: missing key 'samples'"),
     cli(CALFILE, "calibration from a future schema", "export --calibration future.json",
         "is newer than this gridcal understands"),
     cli(CALFILE, "truncated calibration", "export --calibration truncated.json",

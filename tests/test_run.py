@@ -53,6 +53,12 @@ def test_run_writes_a_valid_calibration(small_suite, tmp_path):
     held = [m for m in cal["measurements"] if m["held_back"]]
     assert held and all(m["kind"] == "in_context" for m in held)
     assert np.isfinite(result.holdout_mare) and result.holdout_mare >= 0
+    # each ray set is fitted alone, or the file says why not
+    fitted, skipped = set(cal.get("by_rays", {})), set(cal["meta"].get("by_rays_skipped", {}))
+    assert fitted | skipped == {"isotropic", "camera"} and not fitted & skipped
+    assert set(cal["meta"]["holdout_mare_by_rays"]) <= fitted
+    for ray_set in fitted:
+        assert cal["by_rays"][ray_set]["diagnostics"]["converged"] is True
     assert not run.partial_path(out).exists(), "a finished run leaves no partial file"
     # the stored measurements re-fit without measuring again
     again = calfile.refit(cal, seed=3)
@@ -109,8 +115,10 @@ def test_cli_user_mistakes_are_one_line(argv, needle, capsys, tmp_path, monkeypa
 
 def test_run_json_and_show(small_suite, tmp_path, capsys):
     out = tmp_path / "cal.json"
-    assert main(["run", "--json", "--quiet", "--budget", "120", "--out", str(out)]) == 0
-    printed = json.loads(capsys.readouterr().out)
+    code = main(["run", "--json", "--quiet", "--budget", "120", "--out", str(out)])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    printed = json.loads(captured.out)
     for key in ("t_setup_ns", "t_step_ns", "t_int_ns", "t_sub_ns", "ratio"):
         assert key in printed["constants"]
     assert printed["wall_s"] > 0
