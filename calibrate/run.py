@@ -53,9 +53,13 @@ MIN_BUDGET_S = FIT_RESERVE_S + 4.0
 #: Constants whose in-context fit borrows a prior from the isolating suites: set-up
 #: and subgrid entry are a few per cent of a real batch, too little for the batches
 #: alone to pin them; the isolating suites measure them directly.
-PRIOR_FROM_ISOLATED = ("t_setup_ns", "t_sub_ns")
-#: Width (log units) of those priors: lets the in-context data move them by tens of per cent.
-ISOLATED_PRIOR_SIGMA_LOG = 0.3
+#: Width (log units) of each prior. Set-up: 0.3, lets the in-context data move it by tens
+#: of per cent. Subgrid entry: 0.7 (a factor of two at one sigma), because the isolating
+#: suite enters subgrids of one cell, while a real subgrid entry sets up a traversal of
+#: n^3 cells; in-context fits put it at 2-4x the isolated value, and a prior of 0.3 held
+#: it down (held-back error of isotropic rays 21% with 0.3, 14.5% with 0.7 on the same
+#: measurements; docs/calibration.md).
+PRIOR_FROM_ISOLATED = {"t_setup_ns": 0.3, "t_sub_ns": 0.7}
 #: Partial-file format marker.
 PARTIAL_FORMAT = "gridcal-partial-run"
 PARTIAL_VERSION = 1
@@ -149,10 +153,10 @@ def records(configs, timings: dict, held: set) -> list:
 
 def _priors(isolated):
     priors = {}
-    for name in PRIOR_FROM_ISOLATED:
+    for name, sigma_log in PRIOR_FROM_ISOLATED.items():
         est = (isolated or {}).get(name)
         if est:
-            priors[name] = (est["median"], ISOLATED_PRIOR_SIGMA_LOG)
+            priors[name] = (est["median"], sigma_log)
     return priors
 
 
