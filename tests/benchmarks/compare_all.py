@@ -1,7 +1,7 @@
 """Benchmark: `calibrate compare` over the built-in scenes and the real meshes.
 
     python tests/benchmarks/compare_all.py [--ratio R | --calibration FILE (default calibration.json)]
-        [--out results.json]
+        [--ray-set isotropic|camera] [--out results.json]
         [--plot figure.png --plot-scenes NAME ...] [--skip NAME ...] [--only NAME ...]
 
 Prints, per scene, the penalty of the prediction and of each baseline against the
@@ -44,7 +44,9 @@ def main() -> None:
     ap.add_argument("--levels", default="auto")
     ap.add_argument("--fidelity", default="analytic")
     ap.add_argument("--points", type=int, default=DEFAULT_POINTS)
-    ap.add_argument("--rays", type=int, default=4096)
+    ap.add_argument("--rays", type=int, default=4096, help="rays per batch")
+    ap.add_argument("--ray-set", default="isotropic", choices=("isotropic", "camera"),
+                    help="the rays traced; the calibration's fit of that set alone when it has one")
     ap.add_argument("--big", type=int, default=50_000, help="triangles above which --big-rays is used")
     ap.add_argument("--big-rays", type=int, default=2048)
     ap.add_argument("--rounds", type=int, default=7)
@@ -57,9 +59,11 @@ def main() -> None:
     if args.ratio is None and not args.calibration:
         args.calibration = "calibration.json"  # a calibration belongs to its kernels: no built-in r
     if args.calibration:
-        k = load_calibration_constants(args.calibration)
+        k = load_calibration_constants(args.calibration, args.ray_set)
         source = dict(samples={f"{n}_ns": k.samples[n] for n in ("t_setup", "t_step", "t_int", "t_sub")},
                       constants={f"{n}_ns": getattr(k, n) for n in ("t_setup", "t_step", "t_int", "t_sub")})
+        if k.fitted_on:
+            source["constants"]["fitted_on"] = k.fitted_on
     else:
         source = dict(ratio=args.ratio)
     names = list(builtin_names())
@@ -71,7 +75,9 @@ def main() -> None:
     names = [n for n in names if Path(n).name not in args.skip and n not in args.skip]
     if args.only:
         names = [n for n in names if Path(n).name in args.only or n in args.only]
-    print(f"source: {source if 'ratio' in source else args.calibration}; levels {args.levels}; fidelity "
+    fit = "" if "ratio" in source else f" ({source['constants'].get('fitted_on', 'pooled')} fit, r = {k.ratio:.3f})"
+    print(f"source: {source if 'ratio' in source else args.calibration}{fit}; {args.ray_set} rays; "
+          f"levels {args.levels}; fidelity "
           f"{args.fidelity}; "
           f"{args.points} points per depth; {args.rays} rays ({args.big_rays} above {args.big:,} triangles); "
           f"{args.rounds} rounds")
@@ -82,7 +88,7 @@ def main() -> None:
         t0 = time.monotonic()
         try:
             r = compare_scene(scene, levels=args.levels, fidelity=args.fidelity, points=args.points,
-                              ray_count=n_rays, rounds=args.rounds,
+                              ray_count=n_rays, rounds=args.rounds, rays=args.ray_set,
                               **source)
         except ValueError as exc:  # e.g. the predicted grid does not fit the sweep's memory budget
             print(f"{scene.name:28s} skipped: {exc}", flush=True)
