@@ -63,6 +63,28 @@ def corner(cal: dict, path: Path) -> Path:
     return out
 
 
+def relative_residuals(cal: dict) -> tuple[list, list, np.ndarray]:
+    """(in-context records with values, their ray sets, measured / predicted - 1 of each).
+
+    Each configuration is predicted as the file's predictions are for its ray set:
+    by that set's own fit (``by_rays``) when there is one, else by the pooled fit;
+    the median over posterior samples against the median of the repeats.
+    """
+    recs = [m for m in cal["measurements"] if m["kind"] == "in_context" and m["values_ns"]]
+    sets = [str(m.get("ray_set") or "") for m in recs]
+    rel = np.empty(len(recs))
+    for name in sorted(set(sets)):
+        idx = [i for i, s in enumerate(sets) if s == name]
+        block = calfile.fit_for_rays(cal, name or None)[0]
+        design = calfile.design_from_measurements([recs[i] for i in idx], "in_context", include_held_back=True)
+        cols = block["samples"]["columns"]
+        values = np.asarray(block["samples"]["values"], dtype=float)
+        names = [c for c in cols if c != calfile.SCATTER_COLUMN]
+        pred = np.median(predict_batch_times(values[:, [cols.index(n) for n in names]], names, design), axis=0)
+        rel[idx] = np.array([np.median(recs[i]["values_ns"]) for i in idx]) / pred - 1.0
+    return recs, sets, rel
+
+
 def residuals(cal: dict, path: Path) -> Path:
     """Relative residual of every in-context configuration against its steps and tests per ray."""
     import matplotlib
@@ -70,27 +92,26 @@ def residuals(cal: dict, path: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    recs = [m for m in cal["measurements"] if m["kind"] == "in_context" and m["values_ns"]]
-    design = calfile.design_from_measurements(recs, "in_context", include_held_back=True)
-    cols = cal["samples"]["columns"]
-    values = np.asarray(cal["samples"]["values"], dtype=float)
-    names = [c for c in cols if c != calfile.SCATTER_COLUMN]
-    pred = np.median(predict_batch_times(values[:, [cols.index(n) for n in names]], names, design), axis=0)
-    meas = np.array([np.median(m["values_ns"]) for m in recs])
-    rel = meas / pred - 1.0
+    recs, sets, rel = relative_residuals(cal)
+    per_set = bool(cal.get("by_rays"))
     held = np.array([bool(m.get("held_back")) for m in recs])
     rays = np.array([m["rays"] for m in recs], dtype=float)
     fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
+    colours = dict(zip(sorted(set(sets)), ("tab:blue", "tab:orange", "tab:green", "tab:purple")))
     for ax, key, label in ((axes[0], "steps", "cells stepped per ray"), (axes[1], "tests", "triangle tests per ray")):
         x = np.array([m[key] for m in recs], dtype=float) / rays
-        ax.plot(x[~held], 100 * rel[~held], "o", ms=4, label="fitted")
-        ax.plot(x[held], 100 * rel[held], "s", ms=5, mfc="none", color="tab:red", label="held back")
+        for name, colour in colours.items():
+            mine = np.array([s == name for s in sets])
+            tag = f"{name} rays" if name else "fitted"
+            ax.plot(x[mine & ~held], 100 * rel[mine & ~held], "o", ms=4, color=colour, label=f"{tag}, fitted")
+            ax.plot(x[mine & held], 100 * rel[mine & held], "s", ms=5, mfc="none", color=colour,
+                    label=f"{tag}, held back")
         ax.axhline(0.0, color="0.5", lw=0.8)
         ax.set_xscale("log")
         ax.set_xlabel(label)
     axes[0].set_ylabel("measured / predicted - 1 (%)")
-    axes[1].legend()
-    fig.suptitle("in-context batch times against the fitted model")
+    axes[1].legend(fontsize="small")
+    fig.suptitle("in-context batch times against " + ("each ray set's own fit" if per_set else "the fitted model"))
     out = _save(fig, path)
     plt.close(fig)
     return out

@@ -19,6 +19,7 @@ from calibrate import calfile
 from calibrate import fit as F
 from calibrate import run
 from calibrate.export import export
+from calibrate.plots import relative_residuals
 from calibrate.predict import load_calibration_constants, predict
 
 RAYS = 2048
@@ -216,3 +217,12 @@ def test_bad_by_rays_blocks_are_rejected(planted, tmp_path, label, mutate, messa
     with pytest.raises(calfile.UserError, match=message):
         calfile.load(path)
     assert calfile.dumps(cal) == text, "the fixture is untouched"
+
+
+def test_residuals_are_taken_against_each_ray_sets_fit(planted):
+    *_, cal = planted
+    recs, sets, rel = relative_residuals(cal)
+    assert sorted(set(sets)) == ["camera", "isotropic"] and len(rel) == len(recs) == 2 * N_PER_SET
+    assert np.median(np.abs(rel)) < 0.03, "each set's own fit leaves the planted 2% noise"
+    pooled = {k: v for k, v in cal.items() if k != "by_rays"}
+    assert np.median(np.abs(relative_residuals(pooled)[2])) > 3 * np.median(np.abs(rel))
