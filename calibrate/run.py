@@ -298,6 +298,7 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
         rng = np.random.default_rng(seed)
         rounds = max([FIRST_ROUNDS] + [len(m.values_ns) for m in timings.values()])
         result = None
+        last_fit = None  # (stage, records, isolated, warning, result) of the last stage that fitted
         stage = 0
         while True:
             stage += 1
@@ -318,7 +319,18 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
                 if time.monotonic() < deadline - FIT_RESERVE_S:
                     rounds += STAGE_ROUNDS
                     continue
-                raise UserError(f"the measurements could not be fitted within the budget: {exc}") from None
+                if last_fit is None:
+                    raise UserError(f"the measurements could not be fitted within the budget: {exc}") from None
+                # A later stage's data can fit worse than an earlier one's (e.g. with many repeats a
+                # small misfit makes a constant's interval reach towards 0): keep the last fit that
+                # worked, with the measurements it was made from, and say so.
+                fitted_stage, recs, isolated, iso_warning, result = last_fit
+                n_kept = sum(len(r["values_ns"]) for r in recs)
+                n_all = sum(len(m.values_ns) for m in timings.values())
+                warnings.append(f"the last stage's fit failed ({exc}); the calibration is stage {fitted_stage}'s "
+                                f"fit and keeps the {n_kept} values it was made from (of {n_all} measured)")
+                break
+            last_fit = (stage, recs, isolated, iso_warning, result)
             width = _rel_width(result)
             enough = target_rel_width is None or width <= target_rel_width
             if on_stage is not None and on_stage(Stage(

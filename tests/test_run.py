@@ -168,3 +168,50 @@ def test_subgrids_that_cost_nothing_give_no_estimate_and_say_so():
     iso, warning = run._isolated_fit(_planted_isolated_records([-5.0, -4.0, 1.0, -2.0]), seed=0)
     assert "t_sub_ns" not in iso
     assert "costs no more than a cell step" in warning
+
+
+def test_a_failed_last_stage_keeps_the_last_fit_that_worked(small_suite, tmp_path, monkeypatch):
+    """The budget ends on a stage whose fit fails: the run keeps the previous stage's fit and data."""
+    from calibrate.protocol import Measurement
+
+    configs = suites.isolated_configs("watertight", 0) + suites.context_configs("watertight", 0)
+    planted = {"rays": 50.0, "steps": 10.0, "tests": 4.0, "subgrids": 30.0}
+    truth = {c.name: sum(planted[k] * c.record()[k] for k in planted) for c in configs}
+    rng = np.random.default_rng(0)
+    clock = {"t": 0.0}
+
+    class FakeTime:
+        @staticmethod
+        def monotonic():
+            return clock["t"]
+
+    def fake_measure(runs, *, rounds, into, **_):
+        for name in runs:
+            m = into.setdefault(name, Measurement(loops=1))
+            m.target_values = rounds
+            while len(m.values_ns) < rounds:
+                m.values_ns.append(float(truth[name] * np.exp(0.02 * rng.standard_normal())))
+        clock["t"] += 1.0 if rounds == run.FIRST_ROUNDS else 1e6  # the second stage spends the budget
+
+    real_fit_stage = run._fit_stage
+    calls = {"n": 0}
+
+    def fit_stage(recs, seed, isolated):
+        calls["n"] += 1
+        if calls["n"] > 1:
+            raise ValueError("planted failure")
+        return real_fit_stage(recs, seed, isolated)
+
+    monkeypatch.setattr(run, "time", FakeTime)
+    monkeypatch.setattr(run, "measure", fake_measure)
+    monkeypatch.setattr(run, "_fit_stage", fit_stage)
+    out = tmp_path / "cal.json"
+    result = run.run_calibration(out, budget_s=120, target_rel_width=1e-9, seed=0)
+    assert calls["n"] == 2
+    assert any("the last stage's fit failed (planted failure)" in w and "stage 1's fit" in w
+               for w in result.warnings), result.warnings
+    cal = calfile.load(out)
+    assert {len(m["values_ns"]) for m in cal["measurements"]} == {run.FIRST_ROUNDS}, \
+        "the file keeps the values the kept fit was made from"
+    r_true = planted["tests"] / planted["steps"]
+    assert cal["constants"]["ratio"]["ci95"][0] <= r_true <= cal["constants"]["ratio"]["ci95"][1]
