@@ -25,8 +25,10 @@
 
 #if defined(__GNUC__) || defined(__clang__)
 #define GC_PREFETCH(p) __builtin_prefetch(p)
+#define GC_PREFETCH_WRITE(p) __builtin_prefetch(p, 1)
 #else
 #define GC_PREFETCH(p) ((void)(p))
+#define GC_PREFETCH_WRITE(p) ((void)(p))
 #endif
 
 /* min and max without fmin's NaN rules (inputs are finite): plain compares, inlined. */
@@ -404,6 +406,10 @@ static int64_t merge_positions(const double *v, int64_t nv, uint64_t *table, uin
 /* Merged vertex of a corner: id[x], or x itself when no position was merged. */
 #define MERGED(id, x) ((id) ? (id)[x] : (uint32_t)(x))
 
+/* The merged corners of face t, sorted: s[0] <= s[1] <= s[2]. */
+#define FACE_CORNERS(f, id, t, s) \
+    sort3(MERGED(id, (f)[3 * (t)]), MERGED(id, (f)[3 * (t) + 1]), MERGED(id, (f)[3 * (t) + 2]), s)
+
 /* Sort three values into s[0] <= s[1] <= s[2] (branch-free min/max). */
 static void sort3(uint32_t a, uint32_t b, uint32_t c, uint32_t s[3])
 {
@@ -430,7 +436,7 @@ static inline int edges_twice(const gc_mesh *mesh, const uint32_t *id, uint32_t 
             return -1;
         }
         uint32_t s[3];
-        sort3(MERGED(id, f[3 * t]), MERGED(id, f[3 * t + 1]), MERGED(id, f[3 * t + 2]), s);
+        FACE_CORNERS(f, id, t, s);
         end[s[0] + 1] += 2;
         end[s[1] + 1] += 1;
     }
@@ -441,8 +447,14 @@ static inline int edges_twice(const gc_mesh *mesh, const uint32_t *id, uint32_t 
         end[i + 1] += end[i];
     }
     for (int64_t t = 0; t < nf; ++t) { /* after the scatter, end[lo] is where lo's group ends */
+        if (t + PREFETCH_AHEAD < nf) { /* where face t + PREFETCH_AHEAD will write, about */
+            uint32_t p[3];
+            FACE_CORNERS(f, id, t + PREFETCH_AHEAD, p);
+            GC_PREFETCH_WRITE(other + end[p[0]]);
+            GC_PREFETCH_WRITE(other + end[p[1]]);
+        }
         uint32_t s[3];
-        sort3(MERGED(id, f[3 * t]), MERGED(id, f[3 * t + 1]), MERGED(id, f[3 * t + 2]), s);
+        FACE_CORNERS(f, id, t, s);
         uint32_t *o = other + end[s[0]];
         o[0] = s[1];
         o[1] = s[2];
