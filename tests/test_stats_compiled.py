@@ -176,3 +176,13 @@ def test_a_bad_index_far_into_the_faces_is_named_by_both_passes(bad):
     for call in (lambda: _kernels.mesh_sums(v, f, 1), lambda: _kernels.mesh_watertight(v, f)):
         with pytest.raises(ValueError, match="face 37 has a vertex index out of range"):
             call()
+
+
+def test_one_thread_and_two_give_the_same_statistics():
+    mesh = load_builtin("sphere")
+    v, f = np.asarray(mesh[0], dtype=np.float64), np.asarray(mesh[1], dtype=np.int64)
+    one, two = compiled_scene_stats(v, f, threads=1), compiled_scene_stats(v, f, threads=2)
+    for field in dataclasses.fields(one):  # bit for bit: the same passes, only run side by side
+        assert np.array_equal(getattr(one, field.name), getattr(two, field.name)), field.name
+    with pytest.raises(ValueError, match="threads must be 1 or 2"):
+        compiled_scene_stats(v, f, threads=3)
