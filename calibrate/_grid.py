@@ -136,24 +136,32 @@ def _check_vertices_faces(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
     return v, f
 
 
-def compiled_scene_stats(vertices, faces):
+def compiled_scene_stats(vertices, faces, *, threads: int = 2):
     """:func:`models.stats.scene_stats` with its pass over the triangles done by the kernels.
 
     The C pass (kernels/stats.c) mirrors the numpy reference term by term; the two
-    agree to rounding (tests/test_model_stats_compiled.py) and share
+    agree to rounding (tests/test_stats_compiled.py) and share
     :func:`models.stats.stats_from_sums`, which turns the sums into statistics.
+    ``threads=2`` runs the watertightness test beside the sums (both release the
+    GIL; the result is the same either way), 1 runs them one after the other.
     """
+    if threads not in (1, 2):
+        raise ValueError(f"threads must be 1 or 2, got {threads!r}")
     from models.stats import aspect_sample_stride, stats_from_sums
 
     v = np.ascontiguousarray(vertices, dtype=np.float64)
     f = np.ascontiguousarray(faces, dtype=np.int64)
     if f.ndim != 2 or f.shape[0] == 0:
         raise ValueError("mesh has no faces")
-    # The two passes release the GIL: the edge sort runs beside the sums.
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        watertight = pool.submit(_kernels.mesh_watertight, v, f)
-        sums = _kernels.mesh_sums(v, f, aspect_sample_stride(f.shape[0]))
-        watertight = watertight.result()
+    stride = aspect_sample_stride(f.shape[0])
+    if threads == 2:  # the two passes release the GIL: the edge grouping runs beside the sums
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            watertight = pool.submit(_kernels.mesh_watertight, v, f)
+            sums = _kernels.mesh_sums(v, f, stride)
+            watertight = watertight.result()
+    else:
+        sums = _kernels.mesh_sums(v, f, stride)
+        watertight = _kernels.mesh_watertight(v, f)
     return stats_from_sums(n_triangles=f.shape[0], box_lo=sums["box_lo"], box_hi=sums["box_hi"],
                            e1_axes=sums["e1"], e2_axes=sums["e2"], perimeters=sums["perimeters"],
                            pair_sums=sums["pair"], triple=sums["triple"], area=sums["area"], vol6=sums["vol6"],

@@ -189,7 +189,9 @@ gc_status gc_mesh_sums_compute(const gc_mesh *mesh, int64_t ar_stride,
                                double *ar_out, int64_t *n_ar, gc_mesh_sums *out, char *err);
 
 /* *watertight = 1 when every edge is shared by exactly two faces, after merging
- * vertices at identical positions (-0.0 and +0.0 are one position). */
+ * vertices at identical positions (-0.0 and +0.0 are one position).  Vertex ids
+ * and edge offsets are 32-bit: more than 2^32 - 2 vertices or (2^32 - 2) / 3 faces
+ * is GC_ERR_ARGUMENT. */
 gc_status gc_mesh_watertight(const gc_mesh *mesh, int *watertight, char *err);
 
 /* Resolution of the monotonic clock in ns. */

@@ -510,6 +510,10 @@ static void test_mesh_sums(void)
           "out-of-range index accepted");
     CHECK(gc_mesh_sums_compute(&bm, 1, NULL, NULL, &s, err) == GC_ERR_ARGUMENT,
           "out-of-range index accepted by the sums");
+    /* beyond 32-bit vertex ids: refused before anything is read */
+    gc_mesh huge = {&CUBE_V[0][0], (int64_t)UINT32_MAX, &CUBE_F[0][0], 12};
+    CHECK(gc_mesh_watertight(&huge, &wt, err) == GC_ERR_ARGUMENT && strstr(err, "too large"),
+          "2^32 - 1 vertices accepted by the watertightness test");
 }
 
 /* The build's prepared triangle/box test (overlap.h) against the plain one
