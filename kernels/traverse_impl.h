@@ -3,7 +3,9 @@
  * Included by traverse.c once per (twin, intersector) with:
  *   GC_TW_COUNT  0 for the timed twin (counts compile away), 1 for the instrumented twin;
  *   GC_TW_ISECT  the ray/triangle test, gc_isect_moller_trumbore or gc_isect_watertight;
- *   GC_TW_NAME(x) the suffixing macro that names this instance's functions.
+ *   GC_TW_NAME(x) the suffixing macro that names this instance's functions;
+ *   GC_TW_PACKED 1 to test a cell's triangles two at a time with the two-lane
+ *                sign stage (watertight on SSE2), 0 for one at a time.
  *
  * 3D-DDA after Amanatides and Woo, "A Fast Voxel Traversal Algorithm for Ray
  * Tracing", Eurographics 1987.  A node is walked over the ray interval [ta, tb]
@@ -75,7 +77,11 @@ static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *
     const int64_t end = first + axis_stride[2] * (int64_t)nd->n[2];
     const gc_cell *cells = g->cells;
     const uint32_t *refs = g->refs;
-    const gc_tri *ref_tris = g->ref_tris;
+    const gc_pack *ref_tris = g->ref_tris;
+#if GC_TW_PACKED
+    gc_ray2 ray2;
+    gc_ray2_prepare(&ray2, &ray);
+#endif
     double t_enter = ta;
     for (;;) {
         double t_axis = tx < ty ? tx : ty;
@@ -99,7 +105,7 @@ static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *
         if (next >= first && next < end) {
             const gc_cell nc = cells[next];
             if (nc.count != GC_CELL_SUBGRID) {
-                GC_PREFETCH(ref_tris + nc.begin);
+                GC_PREFETCH(ref_tris + nc.begin / GC_LANES);
             }
         }
         if (cell.count == GC_CELL_SUBGRID) {
@@ -115,7 +121,6 @@ static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *
             best_prim = hit->prim;
         } else {
             const uint32_t *ref = refs + cell.begin;
-            const gc_tri *tri = ref_tris + cell.begin;
             if (mail) {
                 for (uint32_t k = 0; k < cell.count; ++k) {
                     const uint32_t prim = ref[k];
@@ -127,22 +132,54 @@ static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *
                     cnt->tests++;
 #endif
                     double t;
-                    if (GC_TW_ISECT(&ray, &tri[k], best_t, &t)) {
+                    if (GC_TW_ISECT(&ray, GC_REF_TRI(ref_tris, cell.begin + k), best_t, &t)) {
                         best_t = t;
                         best_prim = (int32_t)prim;
                     }
                 }
             } else {
-                for (uint32_t k = 0; k < cell.count; ++k) {
 #if GC_TW_COUNT
-                    cnt->tests++;
+                cnt->tests += cell.count;
 #endif
+#if GC_TW_PACKED
+                /* Whole packs covering [begin, end): the sign stage of both lanes
+                 * at once, then the rest of the test for each lane that passed,
+                 * in reference order, so each sees the best hit of those before
+                 * it exactly as one at a time would.  Lanes outside the cell are
+                 * masked off. */
+                if (cell.count > 0) {
+                    /* lanes of the first and the last pack that belong to this cell */
+                    const uint32_t kfirst = cell.begin / GC_LANES, klast = (cell.begin + cell.count - 1) / GC_LANES;
+                    int keep = 3 & (3 << (cell.begin % GC_LANES));
+                    const int keep_last = 3 >> (GC_LANES - 1 - (cell.begin + cell.count - 1) % GC_LANES);
+                    for (uint32_t kp = kfirst;; ++kp) {
+                        const double *pc = &ref_tris[kp].c[0][0];
+                        if (kp == klast) {
+                            keep &= keep_last;
+                        }
+                        int m = gc_isect_watertight_signs2(&ray2, pc) & keep;
+                        for (int lane = 0; m; ++lane, m >>= 1) {
+                            double t;
+                            if ((m & 1) && gc_isect_watertight_finish(&ray, pc + lane, best_t, &t)) {
+                                best_t = t;
+                                best_prim = (int32_t)refs[GC_LANES * kp + (uint32_t)lane];
+                            }
+                        }
+                        if (kp == klast) {
+                            break;
+                        }
+                        keep = 3;
+                    }
+                }
+#else
+                for (uint32_t k = 0; k < cell.count; ++k) {
                     double t;
-                    if (GC_TW_ISECT(&ray, &tri[k], best_t, &t)) {
+                    if (GC_TW_ISECT(&ray, GC_REF_TRI(ref_tris, cell.begin + k), best_t, &t)) {
                         best_t = t;
                         best_prim = (int32_t)ref[k];
                     }
                 }
+#endif
             }
         }
         if (best_t <= t_exit || !(t_exit < tb)) {
