@@ -58,21 +58,25 @@ static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *
             dt[i] = 0.0;
         }
     }
-    /* The walk keeps its state in scalars and picks the next axis without a
-     * branch: which axis a ray crosses next is a coin toss for the branch
-     * predictor, and a mispredicted step would cost more than the step itself.
-     * The ray and the best hit are local copies, so the compiler keeps them in
-     * registers instead of reloading them after every store of a hit. */
+    /* The walk picks the next axis without a branch: which axis a ray crosses
+     * next is a coin toss for the branch predictor, and a mispredicted step
+     * would cost more than the step itself.  The axis is an index into small
+     * per-axis arrays (the boundary t, its increment, the index step and the
+     * cells left before the grid ends), so a step updates one entry instead of
+     * masking all three.  The ray and the best hit are local copies, so the
+     * compiler keeps them in registers instead of reloading them after every
+     * store of a hit. */
     const gc_ray ray = *r;
     double best_t = hit->t;
     int32_t best_prim = hit->prim;
-    int32_t cx = c[0], cy = c[1], cz = c[2];
-    const int32_t ux = stride[0] > 0 ? 1 : -1, uy = stride[1] > 0 ? 1 : -1, uz = stride[2] > 0 ? 1 : -1;
-    const int64_t sx = stride[0], sy = stride[1], sz = stride[2];
-    const double dtx = dt[0], dty = dt[1], dtz = dt[2];
-    const int32_t stopx = stop[0], stopy = stop[1], stopz = stop[2];
-    double tx = t_next[0], ty = t_next[1], tz = t_next[2];
-    int64_t idx = (int64_t)gc_cell_index(nd, cx, cy, cz);
+    /* cells left along each axis before the walk leaves the grid: the old
+     * per-axis position moved by +-1 until it reached stop */
+    int32_t left[3];
+    for (int i = 0; i < 3; ++i) {
+        left[i] = stride[i] > 0 ? stop[i] - c[i] : c[i] - stop[i];
+    }
+    double tn[3] = {t_next[0], t_next[1], t_next[2]};
+    int64_t idx = (int64_t)gc_cell_index(nd, c[0], c[1], c[2]);
     const int64_t first = (int64_t)nd->first_cell;
     const int64_t end = first + axis_stride[2] * (int64_t)nd->n[2];
     const gc_cell *cells = g->cells;
@@ -82,8 +86,13 @@ static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *
     gc_ray2 ray2;
     gc_ray2_prepare(&ray2, &ray);
 #endif
+    /* the axis whose boundary comes first: x if tx <= ty and tx <= tz, else y
+     * if ty <= tz, else z (ties go to the earlier axis), indexed by the three
+     * comparisons */
+    static const uint8_t next_axis[8] = {2, 1, 2, 1, 2, 1, 0, 0};
     double t_enter = ta;
     for (;;) {
+        const double tx = tn[0], ty = tn[1], tz = tn[2];
         double t_axis = tx < ty ? tx : ty;
         t_axis = t_axis < tz ? t_axis : tz;
         const double t_exit = t_axis < tb ? t_axis : tb;
@@ -91,13 +100,8 @@ static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *
 #if GC_TW_COUNT
         cnt->steps++;
 #endif
-        /* the axis whose boundary comes first (ties: any of them is right), as
-         * all-ones/all-zeros masks so that the step has no branch */
-        const int ax = (tx <= ty) & (tx <= tz);
-        const int ay = !ax & (ty <= tz);
-        const int az = !ax & !ay;
-        const int64_t mx = -(int64_t)ax, my = -(int64_t)ay, mz = -(int64_t)az;
-        const int64_t next = idx + ((mx & sx) | (my & sy) | (mz & sz));
+        const int a = next_axis[((tx <= ty) << 2) | ((tx <= tz) << 1) | (ty <= tz)];
+        const int64_t next = idx + stride[a];
         /* The next cell along the ray, and the first of its triangles, start
          * loading while this cell is tested: a cell's triangles lie at a place
          * in memory nothing else predicts, and waiting for them made an
@@ -185,14 +189,9 @@ static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *
         if (best_t <= t_exit || !(t_exit < tb)) {
             break;
         }
-        cx += (int32_t)(mx & ux);
-        cy += (int32_t)(my & uy);
-        cz += (int32_t)(mz & uz);
         idx = next;
-        tx += (double)ax * dtx;
-        ty += (double)ay * dty;
-        tz += (double)az * dtz;
-        if ((cx == stopx) | (cy == stopy) | (cz == stopz)) {
+        tn[a] += dt[a];
+        if (--left[a] == 0) {
             break;
         }
         t_enter = t_axis;
