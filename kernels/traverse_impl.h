@@ -123,7 +123,7 @@ static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *
 #endif
             best_t = hit->t;
             best_prim = hit->prim;
-        } else {
+        } else if (cell.count != 0) {
             const uint32_t *ref = refs + cell.begin;
             if (mail) {
                 for (uint32_t k = 0; k < cell.count; ++k) {
@@ -151,29 +151,30 @@ static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *
                  * in reference order, so each sees the best hit of those before
                  * it exactly as one at a time would.  Lanes outside the cell are
                  * masked off. */
-                if (cell.count > 0) {
-                    /* lanes of the first and the last pack that belong to this cell */
-                    const uint32_t kfirst = cell.begin / GC_LANES, klast = (cell.begin + cell.count - 1) / GC_LANES;
-                    int keep = 3 & (3 << (cell.begin % GC_LANES));
-                    const int keep_last = 3 >> (GC_LANES - 1 - (cell.begin + cell.count - 1) % GC_LANES);
-                    for (uint32_t kp = kfirst;; ++kp) {
-                        const double *pc = &ref_tris[kp].c[0][0];
-                        if (kp == klast) {
-                            keep &= keep_last;
-                        }
-                        int m = gc_isect_watertight_signs2(&ray2, pc) & keep;
+                const uint32_t last = cell.begin + cell.count - 1;
+                const gc_pack *pk = ref_tris + cell.begin / GC_LANES;
+                const gc_pack *const pk_last = ref_tris + last / GC_LANES;
+                int keep = 3 & (3 << (cell.begin % GC_LANES)); /* lanes of this cell */
+                const int keep_last = 3 >> (GC_LANES - 1 - last % GC_LANES);
+                for (;; ++pk) {
+                    if (pk == pk_last) {
+                        keep &= keep_last;
+                    }
+                    int m = gc_isect_watertight_signs2(&ray2, &pk->c[0][0]) & keep;
+                    if (m) {
+                        const uint32_t k0 = (uint32_t)(pk - ref_tris) * GC_LANES;
                         for (int lane = 0; m; ++lane, m >>= 1) {
                             double t;
-                            if ((m & 1) && gc_isect_watertight_finish(&ray, pc + lane, best_t, &t)) {
+                            if ((m & 1) && gc_isect_watertight_finish(&ray, &pk->c[0][lane], best_t, &t)) {
                                 best_t = t;
-                                best_prim = (int32_t)refs[GC_LANES * kp + (uint32_t)lane];
+                                best_prim = (int32_t)refs[k0 + (uint32_t)lane];
                             }
                         }
-                        if (kp == klast) {
-                            break;
-                        }
-                        keep = 3;
                     }
+                    if (pk == pk_last) {
+                        break;
+                    }
+                    keep = 3;
                 }
 #else
                 for (uint32_t k = 0; k < cell.count; ++k) {
