@@ -126,20 +126,25 @@ static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *
         } else if (cell.count != 0) {
             const uint32_t *ref = refs + cell.begin;
             if (mail) {
+                /* the lane view steps to the next lane, or to lane 0 of the next pack */
+                const double *tv = GC_REF_TRI(ref_tris, cell.begin);
+                uint32_t lane = cell.begin % GC_LANES;
                 for (uint32_t k = 0; k < cell.count; ++k) {
                     const uint32_t prim = ref[k];
-                    if (mail->stamp[prim] == mail->ray) {
-                        continue;
-                    }
-                    mail->stamp[prim] = mail->ray;
+                    if (mail->stamp[prim] != mail->ray) {
+                        mail->stamp[prim] = mail->ray;
 #if GC_TW_COUNT
-                    cnt->tests++;
+                        cnt->tests++;
 #endif
-                    double t;
-                    if (GC_TW_ISECT(&ray, GC_REF_TRI(ref_tris, cell.begin + k), best_t, &t)) {
-                        best_t = t;
-                        best_prim = (int32_t)prim;
+                        double t;
+                        if (GC_TW_ISECT(&ray, tv, best_t, &t)) {
+                            best_t = t;
+                            best_prim = (int32_t)prim;
+                        }
                     }
+                    const uint32_t wrap = ++lane == GC_LANES;
+                    lane = wrap ? 0 : lane;
+                    tv += wrap ? 9 * GC_LANES - (GC_LANES - 1) : 1;
                 }
             } else {
 #if GC_TW_COUNT
@@ -177,12 +182,17 @@ static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *
                     keep = 3;
                 }
 #else
+                const double *tv = GC_REF_TRI(ref_tris, cell.begin);
+                uint32_t lane = cell.begin % GC_LANES;
                 for (uint32_t k = 0; k < cell.count; ++k) {
                     double t;
-                    if (GC_TW_ISECT(&ray, GC_REF_TRI(ref_tris, cell.begin + k), best_t, &t)) {
+                    if (GC_TW_ISECT(&ray, tv, best_t, &t)) {
                         best_t = t;
                         best_prim = (int32_t)ref[k];
                     }
+                    const uint32_t wrap = ++lane == GC_LANES;
+                    lane = wrap ? 0 : lane;
+                    tv += wrap ? 9 * GC_LANES - (GC_LANES - 1) : 1;
                 }
 #endif
             }
