@@ -26,10 +26,10 @@ static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *
 )
 {
     /* Per axis: the entry cell, the t of the next cell boundary, the t between
-     * boundaries, the cell where the walk leaves the grid, and the step in the
-     * flat cell index.  An axis the ray does not move along has t_next = inf,
-     * dt = 0 and is never chosen. */
-    int32_t c[3], stop[3];
+     * boundaries, the cells left before the walk leaves the grid (the entry
+     * cell included), and the step in the flat cell index.  An axis the ray
+     * does not move along has t_next = inf, dt = 0 and is never chosen. */
+    int32_t c[3], left[3];
     int64_t stride[3];
     double t_next[3], dt[3];
     const int64_t axis_stride[3] = {1, (int64_t)nd->n[0], (int64_t)nd->n[0] * (int64_t)nd->n[1]};
@@ -40,19 +40,19 @@ static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *
         f = f > 0.0 ? (f < top ? f : top) : 0.0; /* NaN-free: p is finite */
         c[i] = (int32_t)f;
         if (r->d[i] > 0.0) {
-            stop[i] = nd->n[i];
+            left[i] = nd->n[i] - c[i];
             stride[i] = axis_stride[i];
             double edge = (c[i] + 1 == nd->n[i]) ? nd->hi[i] : nd->lo[i] + (double)(c[i] + 1) * nd->cell[i];
             t_next[i] = (edge - r->o[i]) * r->inv_d[i];
             dt[i] = nd->cell[i] * r->inv_d[i];
         } else if (r->d[i] < 0.0) {
-            stop[i] = -1;
+            left[i] = c[i] + 1;
             stride[i] = -axis_stride[i];
             double edge = nd->lo[i] + (double)c[i] * nd->cell[i];
             t_next[i] = (edge - r->o[i]) * r->inv_d[i];
             dt[i] = -nd->cell[i] * r->inv_d[i];
         } else {
-            stop[i] = -2; /* never reached */
+            left[i] = c[i] + 2; /* never reached */
             stride[i] = 0;
             t_next[i] = INFINITY;
             dt[i] = 0.0;
@@ -69,12 +69,6 @@ static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *
     const gc_ray ray = *r;
     double best_t = hit->t;
     int32_t best_prim = hit->prim;
-    /* cells left along each axis before the walk leaves the grid: the old
-     * per-axis position moved by +-1 until it reached stop */
-    int32_t left[3];
-    for (int i = 0; i < 3; ++i) {
-        left[i] = stride[i] > 0 ? stop[i] - c[i] : c[i] - stop[i];
-    }
     double tn[3] = {t_next[0], t_next[1], t_next[2]};
     int64_t idx = (int64_t)gc_cell_index(nd, c[0], c[1], c[2]);
     const int64_t first = (int64_t)nd->first_cell;
