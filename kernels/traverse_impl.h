@@ -164,7 +164,7 @@ static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *
                         const uint32_t k0 = (uint32_t)(pk - ref_tris) * GC_LANES;
                         for (int lane = 0; m; ++lane, m >>= 1) {
                             double t;
-                            if ((m & 1) && gc_isect_watertight_finish(&ray, &pk->c[0][lane], best_t, &t)) {
+                            if ((m & 1) && gc_isect_watertight_finish_inline(&ray, &pk->c[0][lane], best_t, &t)) {
                                 best_t = t;
                                 best_prim = (int32_t)refs[k0 + (uint32_t)lane];
                             }

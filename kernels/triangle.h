@@ -97,10 +97,7 @@ GC_INLINE int gc_isect_moller_trumbore(const gc_ray *r, const double *tri, doubl
  * line so the common rejection stays short; the sheared coordinates and the
  * edge functions are formed again by the same operations, so they are the same
  * values (and the caller need not hand them over). */
-#if defined(__GNUC__)
-__attribute__((noinline))
-#endif
-static int gc_isect_watertight_finish(const gc_ray *r, const double *tri, double t_max, double *t_out)
+GC_INLINE int gc_isect_watertight_finish_inline(const gc_ray *r, const double *tri, double t_max, double *t_out)
 {
     const int kx = r->kx, ky = r->ky, kz = r->kz;
     const double sx = r->sx, sy = r->sy;
@@ -144,6 +141,14 @@ static int gc_isect_watertight_finish(const gc_ray *r, const double *tri, double
     }
     *t_out = t;
     return 1;
+}
+
+#if defined(__GNUC__)
+__attribute__((noinline))
+#endif
+static int gc_isect_watertight_finish(const gc_ray *r, const double *tri, double t_max, double *t_out)
+{
+    return gc_isect_watertight_finish_inline(r, tri, t_max, t_out);
 }
 
 GC_INLINE int gc_isect_watertight(const gc_ray *r, const double *tri, double t_max, double *t_out)
