@@ -20,15 +20,13 @@ gc_status gc_brute_force(const gc_mesh *mesh, gc_intersector intersector, int64_
         double best = INFINITY;
         int32_t best_prim = -1;
         for (int64_t f = 0; f < mesh->n_faces; ++f) {
-            gc_tri tri;
-            for (int i = 0; i < 3; ++i) {
-                tri.v0[i] = mesh->vertices[3 * mesh->faces[3 * f + 0] + i];
-                tri.v1[i] = mesh->vertices[3 * mesh->faces[3 * f + 1] + i];
-                tri.v2[i] = mesh->vertices[3 * mesh->faces[3 * f + 2] + i];
+            gc_pack tri; /* lane 0 holds the triangle */
+            for (int c = 0; c < 9; ++c) {
+                tri.c[c][0] = mesh->vertices[3 * mesh->faces[3 * f + c / 3] + c % 3];
             }
             double th;
-            int hit = intersector == GC_WATERTIGHT ? gc_isect_watertight(&r, &tri, best, &th)
-                                                   : gc_isect_moller_trumbore(&r, &tri, best, &th);
+            int hit = intersector == GC_WATERTIGHT ? gc_isect_watertight(&r, &tri.c[0][0], best, &th)
+                                                   : gc_isect_moller_trumbore(&r, &tri.c[0][0], best, &th);
             if (hit) {
                 best = th;
                 best_prim = (int32_t)f;

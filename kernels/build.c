@@ -699,9 +699,9 @@ gc_status gc_grid_build(const gc_mesh *mesh, const gc_build_params *params, gc_g
         }
         b.cap_refs = g->n_refs;
     }
-    st = check_memory(&b, (uint64_t)g->n_refs * sizeof(gc_tri), "the per-reference triangles");
+    st = check_memory(&b, GC_PACK_BYTES(g->n_refs), "the per-reference triangles");
     if (st == GC_OK) {
-        g->ref_tris = malloc((size_t)(g->n_refs > 0 ? g->n_refs : 1) * sizeof(gc_tri));
+        g->ref_tris = calloc((size_t)GC_PACK_BYTES(g->n_refs > 0 ? g->n_refs : 1), 1);
         if (!g->ref_tris) {
             gc_set_error(err, "out of memory copying %lld triangle references", (long long)g->n_refs);
             st = GC_ERR_NO_MEMORY;
@@ -712,7 +712,14 @@ gc_status gc_grid_build(const gc_mesh *mesh, const gc_build_params *params, gc_g
         return st;
     }
     for (int64_t k = 0; k < g->n_refs; ++k) {
-        g->ref_tris[k] = g->tris[g->refs[k]];
+        const gc_tri *t = &g->tris[g->refs[k]];
+        gc_pack *pk = &g->ref_tris[k / GC_LANES];
+        const int lane = (int)(k % GC_LANES);
+        for (int i = 0; i < 3; ++i) {
+            pk->c[i][lane] = t->v0[i];
+            pk->c[3 + i][lane] = t->v1[i];
+            pk->c[6 + i][lane] = t->v2[i];
+        }
     }
     free(g->tris);
     g->tris = NULL;

@@ -7,7 +7,9 @@
  *   nodes : one per (sub)grid, node 0 is the top level;
  *   cells : every node's cells, node k owning [first_cell, first_cell + nx*ny*nz);
  *   refs  : triangle indices; a leaf cell owns refs[begin, begin + count);
- *   ref_tris : the vertices of each reference's triangle, parallel to refs.
+ *   ref_tris : the vertices of each reference's triangle, parallel to refs, in packs of
+ *           GC_LANES references (gc_pack) so that one coordinate of neighbouring
+ *           references is one vector load.
  * A cell whose count is GC_CELL_SUBGRID holds a subgrid: its begin is a node index.
  */
 #ifndef GC_INTERNAL_H
@@ -39,6 +41,23 @@ typedef struct {
     double v0[3], v1[3], v2[3];
 } gc_tri; /* 72 bytes */
 
+/* The per-reference triangles are stored in packs of GC_LANES references:
+ * coordinate c (3 * vertex + axis) of reference k is
+ * ref_tris[k / GC_LANES].c[c][k % GC_LANES].  The intersectors read one
+ * triangle through a "lane view", a pointer to its coordinate 0, with the
+ * coordinates GC_LANES doubles apart (GC_TV); the two-lane test reads one
+ * coordinate of a whole pack with one load.  Same bytes per reference as gc_tri;
+ * the last pack may have unused lanes. */
+#define GC_LANES 2
+typedef struct {
+    double c[9][GC_LANES];
+} gc_pack; /* 144 bytes */
+#define GC_TV(t, c) ((t)[GC_LANES * (c)])
+/* the lane view of reference k */
+#define GC_REF_TRI(packs, k) (&(packs)[(k) / GC_LANES].c[0][(k) % GC_LANES])
+/* bytes of the per-reference triangles of n references */
+#define GC_PACK_BYTES(n) ((((uint64_t)(n) + GC_LANES - 1) / GC_LANES) * (uint64_t)sizeof(gc_pack))
+
 
 typedef struct {
     uint32_t begin; /* first reference, or the subgrid's node index */
@@ -58,14 +77,16 @@ typedef struct {
 } gc_node;              /* 120 bytes */
 
 _Static_assert(sizeof(gc_tri) == 72, "gc_tri is three packed vertices");
+_Static_assert(sizeof(gc_pack) == 72 * GC_LANES, "gc_pack is GC_LANES triangles");
 _Static_assert(sizeof(gc_cell) == 8, "gc_cell is two 32-bit fields");
 _Static_assert(sizeof(gc_node) == 120, "gc_node layout");
 
 struct gc_grid {
     gc_tri *tris;       /* in Morton order of their centroids (build only; freed after) */
-    gc_tri *ref_tris;   /* a copy of each reference's triangle, parallel to refs: a cell's
-                         * triangles stream from one contiguous block, so the cost of a
-                         * test does not depend on where the triangle lies in memory */
+    gc_pack *ref_tris;  /* a copy of each reference's triangle, parallel to refs, in packs
+                         * (gc_pack): a cell's triangles stream from one contiguous block,
+                         * so the cost of a test does not depend on where the triangle
+                         * lies in memory */
     int32_t *tri_id;    /* the mesh's face index of each stored triangle */
     int64_t n_tris;
     gc_node *nodes;

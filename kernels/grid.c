@@ -174,7 +174,7 @@ void gc_grid_get_info(const gc_grid *g, gc_grid_info *info)
     }
     info->n_empty_cells = empty;
     info->memory_bytes = (int64_t)(sizeof(gc_grid) + (size_t)g->n_tris * sizeof(int32_t) +
-                                   (size_t)g->n_refs * sizeof(gc_tri) +
+                                   (size_t)GC_PACK_BYTES(g->n_refs) +
                                    (size_t)g->n_nodes * sizeof(gc_node) +
                                    (size_t)g->n_cells * sizeof(gc_cell) +
                                    (size_t)g->n_refs * sizeof(uint32_t));
@@ -222,11 +222,11 @@ gc_status gc_check_rays(int64_t n, const double *origins, const double *directio
     }
     for (int64_t k = 0; k < n; ++k) {
         const double *o = origins + 3 * k, *d = directions + 3 * k;
-        for (int i = 0; i < 3; ++i) {
-            if (!isfinite(o[i]) || !isfinite(d[i])) {
-                gc_set_error(err, "ray %lld has a non-finite origin or direction", (long long)k);
-                return GC_ERR_ARGUMENT;
-            }
+        /* x - x is 0 for a finite x and NaN for an infinite or NaN one */
+        if (!((o[0] - o[0]) + (o[1] - o[1]) + (o[2] - o[2]) + (d[0] - d[0]) + (d[1] - d[1]) + (d[2] - d[2]) ==
+              0.0)) {
+            gc_set_error(err, "ray %lld has a non-finite origin or direction", (long long)k);
+            return GC_ERR_ARGUMENT;
         }
         if (d[0] == 0.0 && d[1] == 0.0 && d[2] == 0.0) {
             gc_set_error(err, "ray %lld has a zero direction", (long long)k);

@@ -3,7 +3,9 @@
  * Included by traverse.c once per (twin, intersector) with:
  *   GC_TW_COUNT  0 for the timed twin (counts compile away), 1 for the instrumented twin;
  *   GC_TW_ISECT  the ray/triangle test, gc_isect_moller_trumbore or gc_isect_watertight;
- *   GC_TW_NAME(x) the suffixing macro that names this instance's functions.
+ *   GC_TW_NAME(x) the suffixing macro that names this instance's functions;
+ *   GC_TW_PACKED 1 to test a cell's triangles two at a time with the two-lane
+ *                sign stage (watertight on SSE2), 0 for one at a time.
  *
  * 3D-DDA after Amanatides and Woo, "A Fast Voxel Traversal Algorithm for Ray
  * Tracing", Eurographics 1987.  A node is walked over the ray interval [ta, tb]
@@ -24,10 +26,10 @@ static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *
 )
 {
     /* Per axis: the entry cell, the t of the next cell boundary, the t between
-     * boundaries, the cell where the walk leaves the grid, and the step in the
-     * flat cell index.  An axis the ray does not move along has t_next = inf,
-     * dt = 0 and is never chosen. */
-    int32_t c[3], stop[3];
+     * boundaries, the cells left before the walk leaves the grid (the entry
+     * cell included), and the step in the flat cell index.  An axis the ray
+     * does not move along has t_next = inf, dt = 0 and is never chosen. */
+    int32_t c[3], left[3];
     int64_t stride[3];
     double t_next[3], dt[3];
     const int64_t axis_stride[3] = {1, (int64_t)nd->n[0], (int64_t)nd->n[0] * (int64_t)nd->n[1]};
@@ -38,46 +40,53 @@ static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *
         f = f > 0.0 ? (f < top ? f : top) : 0.0; /* NaN-free: p is finite */
         c[i] = (int32_t)f;
         if (r->d[i] > 0.0) {
-            stop[i] = nd->n[i];
+            left[i] = nd->n[i] - c[i];
             stride[i] = axis_stride[i];
             double edge = (c[i] + 1 == nd->n[i]) ? nd->hi[i] : nd->lo[i] + (double)(c[i] + 1) * nd->cell[i];
             t_next[i] = (edge - r->o[i]) * r->inv_d[i];
             dt[i] = nd->cell[i] * r->inv_d[i];
         } else if (r->d[i] < 0.0) {
-            stop[i] = -1;
+            left[i] = c[i] + 1;
             stride[i] = -axis_stride[i];
             double edge = nd->lo[i] + (double)c[i] * nd->cell[i];
             t_next[i] = (edge - r->o[i]) * r->inv_d[i];
             dt[i] = -nd->cell[i] * r->inv_d[i];
         } else {
-            stop[i] = -2; /* never reached */
+            left[i] = c[i] + 2; /* never reached */
             stride[i] = 0;
             t_next[i] = INFINITY;
             dt[i] = 0.0;
         }
     }
-    /* The walk keeps its state in scalars and picks the next axis without a
-     * branch: which axis a ray crosses next is a coin toss for the branch
-     * predictor, and a mispredicted step would cost more than the step itself.
-     * The ray and the best hit are local copies, so the compiler keeps them in
-     * registers instead of reloading them after every store of a hit. */
+    /* The walk picks the next axis without a branch: which axis a ray crosses
+     * next is a coin toss for the branch predictor, and a mispredicted step
+     * would cost more than the step itself.  The axis is an index into small
+     * per-axis arrays (the boundary t, its increment, the index step and the
+     * cells left before the grid ends), so a step updates one entry instead of
+     * masking all three.  The ray and the best hit are local copies, so the
+     * compiler keeps them in registers instead of reloading them after every
+     * store of a hit. */
     const gc_ray ray = *r;
     double best_t = hit->t;
     int32_t best_prim = hit->prim;
-    int32_t cx = c[0], cy = c[1], cz = c[2];
-    const int32_t ux = stride[0] > 0 ? 1 : -1, uy = stride[1] > 0 ? 1 : -1, uz = stride[2] > 0 ? 1 : -1;
-    const int64_t sx = stride[0], sy = stride[1], sz = stride[2];
-    const double dtx = dt[0], dty = dt[1], dtz = dt[2];
-    const int32_t stopx = stop[0], stopy = stop[1], stopz = stop[2];
-    double tx = t_next[0], ty = t_next[1], tz = t_next[2];
-    int64_t idx = (int64_t)gc_cell_index(nd, cx, cy, cz);
+    double tn[3] = {t_next[0], t_next[1], t_next[2]};
+    int64_t idx = (int64_t)gc_cell_index(nd, c[0], c[1], c[2]);
     const int64_t first = (int64_t)nd->first_cell;
     const int64_t end = first + axis_stride[2] * (int64_t)nd->n[2];
     const gc_cell *cells = g->cells;
     const uint32_t *refs = g->refs;
-    const gc_tri *ref_tris = g->ref_tris;
+    const gc_pack *ref_tris = g->ref_tris;
+#if GC_TW_PACKED
+    gc_ray2 ray2;
+    gc_ray2_prepare(&ray2, &ray);
+#endif
+    /* the axis whose boundary comes first: x if tx <= ty and tx <= tz, else y
+     * if ty <= tz, else z (ties go to the earlier axis), indexed by the three
+     * comparisons */
+    static const uint8_t next_axis[8] = {2, 1, 2, 1, 2, 1, 0, 0};
     double t_enter = ta;
     for (;;) {
+        const double tx = tn[0], ty = tn[1], tz = tn[2];
         double t_axis = tx < ty ? tx : ty;
         t_axis = t_axis < tz ? t_axis : tz;
         const double t_exit = t_axis < tb ? t_axis : tb;
@@ -85,13 +94,8 @@ static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *
 #if GC_TW_COUNT
         cnt->steps++;
 #endif
-        /* the axis whose boundary comes first (ties: any of them is right), as
-         * all-ones/all-zeros masks so that the step has no branch */
-        const int ax = (tx <= ty) & (tx <= tz);
-        const int ay = !ax & (ty <= tz);
-        const int az = !ax & !ay;
-        const int64_t mx = -(int64_t)ax, my = -(int64_t)ay, mz = -(int64_t)az;
-        const int64_t next = idx + ((mx & sx) | (my & sy) | (mz & sz));
+        const int a = next_axis[((tx <= ty) << 2) | ((tx <= tz) << 1) | (ty <= tz)];
+        const int64_t next = idx + stride[a];
         /* The next cell along the ray, and the first of its triangles, start
          * loading while this cell is tested: a cell's triangles lie at a place
          * in memory nothing else predicts, and waiting for them made an
@@ -99,7 +103,7 @@ static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *
         if (next >= first && next < end) {
             const gc_cell nc = cells[next];
             if (nc.count != GC_CELL_SUBGRID) {
-                GC_PREFETCH(ref_tris + nc.begin);
+                GC_PREFETCH(ref_tris + nc.begin / GC_LANES);
             }
         }
         if (cell.count == GC_CELL_SUBGRID) {
@@ -113,49 +117,86 @@ static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *
 #endif
             best_t = hit->t;
             best_prim = hit->prim;
-        } else {
+        } else if (cell.count != 0) {
             const uint32_t *ref = refs + cell.begin;
-            const gc_tri *tri = ref_tris + cell.begin;
             if (mail) {
+                /* the lane view steps to the next lane, or to lane 0 of the next pack */
+                const double *tv = GC_REF_TRI(ref_tris, cell.begin);
+                uint32_t lane = cell.begin % GC_LANES;
                 for (uint32_t k = 0; k < cell.count; ++k) {
                     const uint32_t prim = ref[k];
-                    if (mail->stamp[prim] == mail->ray) {
-                        continue;
-                    }
-                    mail->stamp[prim] = mail->ray;
+                    if (mail->stamp[prim] != mail->ray) {
+                        mail->stamp[prim] = mail->ray;
 #if GC_TW_COUNT
-                    cnt->tests++;
+                        cnt->tests++;
 #endif
-                    double t;
-                    if (GC_TW_ISECT(&ray, &tri[k], best_t, &t)) {
-                        best_t = t;
-                        best_prim = (int32_t)prim;
+                        double t;
+                        if (GC_TW_ISECT(&ray, tv, best_t, &t)) {
+                            best_t = t;
+                            best_prim = (int32_t)prim;
+                        }
                     }
+                    const uint32_t wrap = ++lane == GC_LANES;
+                    lane = wrap ? 0 : lane;
+                    tv += wrap ? 9 * GC_LANES - (GC_LANES - 1) : 1;
                 }
             } else {
-                for (uint32_t k = 0; k < cell.count; ++k) {
 #if GC_TW_COUNT
-                    cnt->tests++;
+                cnt->tests += cell.count;
 #endif
+#if GC_TW_PACKED
+                /* Whole packs covering [begin, end): the sign stage of both lanes
+                 * at once, then the rest of the test for each lane that passed,
+                 * in reference order, so each sees the best hit of those before
+                 * it exactly as one at a time would.  Lanes outside the cell are
+                 * masked off. */
+                const uint32_t last = cell.begin + cell.count - 1;
+                const gc_pack *pk = ref_tris + cell.begin / GC_LANES;
+                const gc_pack *const pk_last = ref_tris + last / GC_LANES;
+                int keep = 3 & (3 << (cell.begin % GC_LANES)); /* lanes of this cell */
+                const int keep_last = 3 >> (GC_LANES - 1 - last % GC_LANES);
+                for (;; ++pk) {
+                    if (pk == pk_last) {
+                        keep &= keep_last;
+                    }
+                    int m = gc_isect_watertight_signs2(&ray2, &pk->c[0][0]) & keep;
+                    if (m) {
+                        const uint32_t k0 = (uint32_t)(pk - ref_tris) * GC_LANES;
+                        for (int lane = 0; m; ++lane, m >>= 1) {
+                            double t;
+                            if ((m & 1) && gc_isect_watertight_finish_inline(&ray, &pk->c[0][lane], best_t, &t)) {
+                                best_t = t;
+                                best_prim = (int32_t)refs[k0 + (uint32_t)lane];
+                            }
+                        }
+                    }
+                    if (pk == pk_last) {
+                        break;
+                    }
+                    keep = 3;
+                }
+#else
+                const double *tv = GC_REF_TRI(ref_tris, cell.begin);
+                uint32_t lane = cell.begin % GC_LANES;
+                for (uint32_t k = 0; k < cell.count; ++k) {
                     double t;
-                    if (GC_TW_ISECT(&ray, &tri[k], best_t, &t)) {
+                    if (GC_TW_ISECT(&ray, tv, best_t, &t)) {
                         best_t = t;
                         best_prim = (int32_t)ref[k];
                     }
+                    const uint32_t wrap = ++lane == GC_LANES;
+                    lane = wrap ? 0 : lane;
+                    tv += wrap ? 9 * GC_LANES - (GC_LANES - 1) : 1;
                 }
+#endif
             }
         }
         if (best_t <= t_exit || !(t_exit < tb)) {
             break;
         }
-        cx += (int32_t)(mx & ux);
-        cy += (int32_t)(my & uy);
-        cz += (int32_t)(mz & uz);
         idx = next;
-        tx += (double)ax * dtx;
-        ty += (double)ay * dty;
-        tz += (double)az * dtz;
-        if ((cx == stopx) | (cy == stopy) | (cz == stopz)) {
+        tn[a] += dt[a];
+        if (--left[a] == 0) {
             break;
         }
         t_enter = t_axis;

@@ -27,13 +27,12 @@
 #if defined(__GNUC__)
 __attribute__((noinline))
 #endif
-static int gc_isect_moller_trumbore_finish(const gc_ray *r, const gc_tri *tri, double sgn, double adet,
+static int gc_isect_moller_trumbore_finish(const gc_ray *r, const double *tri, double sgn, double adet,
                                            double t_max, double *t_out)
 {
-    const double *v0 = tri->v0, *v1 = tri->v1, *v2 = tri->v2;
-    const double e1[3] = {v1[0] - v0[0], v1[1] - v0[1], v1[2] - v0[2]};
-    const double e2[3] = {v2[0] - v0[0], v2[1] - v0[1], v2[2] - v0[2]};
-    const double s[3] = {r->o[0] - v0[0], r->o[1] - v0[1], r->o[2] - v0[2]};
+    const double e1[3] = {GC_TV(tri, 3) - GC_TV(tri, 0), GC_TV(tri, 4) - GC_TV(tri, 1), GC_TV(tri, 5) - GC_TV(tri, 2)};
+    const double e2[3] = {GC_TV(tri, 6) - GC_TV(tri, 0), GC_TV(tri, 7) - GC_TV(tri, 1), GC_TV(tri, 8) - GC_TV(tri, 2)};
+    const double s[3] = {r->o[0] - GC_TV(tri, 0), r->o[1] - GC_TV(tri, 1), r->o[2] - GC_TV(tri, 2)};
     const double q[3] = {s[1] * e1[2] - s[2] * e1[1], s[2] * e1[0] - s[0] * e1[2],
                          s[0] * e1[1] - s[1] * e1[0]};
     const double tt = (e2[0] * q[0] + e2[1] * q[1] + e2[2] * q[2]) * sgn;
@@ -55,16 +54,15 @@ static int gc_isect_moller_trumbore_finish(const gc_ray *r, const gc_tri *tri, d
     return 1;
 }
 
-GC_INLINE int gc_isect_moller_trumbore(const gc_ray *r, const gc_tri *tri, double t_max,
+GC_INLINE int gc_isect_moller_trumbore(const gc_ray *r, const double *tri, double t_max,
                                        double *t_out)
 {
-    const double *v0 = tri->v0, *v1 = tri->v1, *v2 = tri->v2;
-    const double e1[3] = {v1[0] - v0[0], v1[1] - v0[1], v1[2] - v0[2]};
-    const double e2[3] = {v2[0] - v0[0], v2[1] - v0[1], v2[2] - v0[2]};
+    const double e1[3] = {GC_TV(tri, 3) - GC_TV(tri, 0), GC_TV(tri, 4) - GC_TV(tri, 1), GC_TV(tri, 5) - GC_TV(tri, 2)};
+    const double e2[3] = {GC_TV(tri, 6) - GC_TV(tri, 0), GC_TV(tri, 7) - GC_TV(tri, 1), GC_TV(tri, 8) - GC_TV(tri, 2)};
     const double p[3] = {r->d[1] * e2[2] - r->d[2] * e2[1], r->d[2] * e2[0] - r->d[0] * e2[2],
                          r->d[0] * e2[1] - r->d[1] * e2[0]};
     const double det = e1[0] * p[0] + e1[1] * p[1] + e1[2] * p[2];
-    const double s[3] = {r->o[0] - v0[0], r->o[1] - v0[1], r->o[2] - v0[2]};
+    const double s[3] = {r->o[0] - GC_TV(tri, 0), r->o[1] - GC_TV(tri, 1), r->o[2] - GC_TV(tri, 2)};
     /* Barycentrics and t scaled by det, compared with det's sign folded in, so
      * nothing divides before a hit.  The cheap range tests come first and reject
      * most candidates; depth and the determinant's rounding bound, which needs
@@ -96,22 +94,24 @@ GC_INLINE int gc_isect_moller_trumbore(const gc_ray *r, const gc_tri *tri, doubl
  * (a fused multiply-add would break the negation symmetry). */
 /* The rest of the watertight test, for a ray whose line passes through the
  * triangle (same sign of U, V, W): depth, determinant bound and t.  Kept out of
- * line so the common rejection stays short; the sheared coordinates are formed
- * again by the same operations, so they are the same values. */
-#if defined(__GNUC__)
-__attribute__((noinline))
-#endif
-static int gc_isect_watertight_finish(const gc_ray *r, const gc_tri *tri, double u, double v, double w,
-                                      double t_max, double *t_out)
+ * line so the common rejection stays short; the sheared coordinates and the
+ * edge functions are formed again by the same operations, so they are the same
+ * values (and the caller need not hand them over). */
+GC_INLINE int gc_isect_watertight_finish_inline(const gc_ray *r, const double *tri, double t_max, double *t_out)
 {
     const int kx = r->kx, ky = r->ky, kz = r->kz;
     const double sx = r->sx, sy = r->sy;
-    const double a_x = tri->v0[kx] - r->o[kx], a_y = tri->v0[ky] - r->o[ky], a_z = tri->v0[kz] - r->o[kz];
-    const double b_x = tri->v1[kx] - r->o[kx], b_y = tri->v1[ky] - r->o[ky], b_z = tri->v1[kz] - r->o[kz];
-    const double c_x = tri->v2[kx] - r->o[kx], c_y = tri->v2[ky] - r->o[ky], c_z = tri->v2[kz] - r->o[kz];
+    const double a_x = GC_TV(tri, kx) - r->o[kx], a_y = GC_TV(tri, ky) - r->o[ky], a_z = GC_TV(tri, kz) - r->o[kz];
+    const double b_x = GC_TV(tri, 3 + kx) - r->o[kx], b_y = GC_TV(tri, 3 + ky) - r->o[ky],
+                 b_z = GC_TV(tri, 3 + kz) - r->o[kz];
+    const double c_x = GC_TV(tri, 6 + kx) - r->o[kx], c_y = GC_TV(tri, 6 + ky) - r->o[ky],
+                 c_z = GC_TV(tri, 6 + kz) - r->o[kz];
     const double ax = a_x - sx * a_z, ay = a_y - sy * a_z;
     const double bx = b_x - sx * b_z, by = b_y - sy * b_z;
     const double cx = c_x - sx * c_z, cy = c_y - sy * c_z;
+    const double u = cx * by - cy * bx;
+    const double v = ax * cy - ay * cx;
+    const double w = bx * ay - by * ax;
     const double det = u + v + w;
     const double az = r->sz * a_z, bz = r->sz * b_z, cz = r->sz * c_z;
     const double tt = u * az + v * bz + w * cz;
@@ -143,15 +143,24 @@ static int gc_isect_watertight_finish(const gc_ray *r, const gc_tri *tri, double
     return 1;
 }
 
-GC_INLINE int gc_isect_watertight(const gc_ray *r, const gc_tri *tri, double t_max, double *t_out)
+#if defined(__GNUC__)
+__attribute__((noinline))
+#endif
+static int gc_isect_watertight_finish(const gc_ray *r, const double *tri, double t_max, double *t_out)
+{
+    return gc_isect_watertight_finish_inline(r, tri, t_max, t_out);
+}
+
+GC_INLINE int gc_isect_watertight(const gc_ray *r, const double *tri, double t_max, double *t_out)
 {
     const int kx = r->kx, ky = r->ky, kz = r->kz;
     const double sx = r->sx, sy = r->sy;
     /* indexed loads: the permuted coordinates straight from the triangle */
-    const double a_z = tri->v0[kz] - r->o[kz], b_z = tri->v1[kz] - r->o[kz], c_z = tri->v2[kz] - r->o[kz];
-    const double ax = (tri->v0[kx] - r->o[kx]) - sx * a_z, ay = (tri->v0[ky] - r->o[ky]) - sy * a_z;
-    const double bx = (tri->v1[kx] - r->o[kx]) - sx * b_z, by = (tri->v1[ky] - r->o[ky]) - sy * b_z;
-    const double cx = (tri->v2[kx] - r->o[kx]) - sx * c_z, cy = (tri->v2[ky] - r->o[ky]) - sy * c_z;
+    const double a_z = GC_TV(tri, kz) - r->o[kz], b_z = GC_TV(tri, 3 + kz) - r->o[kz],
+                 c_z = GC_TV(tri, 6 + kz) - r->o[kz];
+    const double ax = (GC_TV(tri, kx) - r->o[kx]) - sx * a_z, ay = (GC_TV(tri, ky) - r->o[ky]) - sy * a_z;
+    const double bx = (GC_TV(tri, 3 + kx) - r->o[kx]) - sx * b_z, by = (GC_TV(tri, 3 + ky) - r->o[ky]) - sy * b_z;
+    const double cx = (GC_TV(tri, 6 + kx) - r->o[kx]) - sx * c_z, cy = (GC_TV(tri, 6 + ky) - r->o[ky]) - sy * c_z;
     const double u = cx * by - cy * bx;
     const double v = ax * cy - ay * cx;
     const double w = bx * ay - by * ax;
@@ -162,7 +171,57 @@ GC_INLINE int gc_isect_watertight(const gc_ray *r, const gc_tri *tri, double t_m
     if (!inside) {
         return 0;
     }
-    return gc_isect_watertight_finish(r, tri, u, v, w, t_max, t_out);
+    return gc_isect_watertight_finish(r, tri, t_max, t_out);
 }
+
+#if defined(__SSE2__)
+#include <emmintrin.h>
+#define GC_HAVE_PACKED_WATERTIGHT 1
+
+/* The ray as the two-lane sign stage uses it: the permuted origin and the
+ * shear broadcast to both lanes, formed once per walk. */
+typedef struct {
+    __m128d ox, oy, oz, sx, sy;
+    int64_t kx, ky, kz; /* the permuted axes, in doubles within a pack's coordinate row */
+} gc_ray2;
+
+GC_INLINE void gc_ray2_prepare(gc_ray2 *q, const gc_ray *r)
+{
+    q->kx = GC_LANES * r->kx;
+    q->ky = GC_LANES * r->ky;
+    q->kz = GC_LANES * r->kz;
+    q->ox = _mm_set1_pd(r->o[r->kx]);
+    q->oy = _mm_set1_pd(r->o[r->ky]);
+    q->oz = _mm_set1_pd(r->o[r->kz]);
+    q->sx = _mm_set1_pd(r->sx);
+    q->sy = _mm_set1_pd(r->sy);
+}
+
+/* The rejection stage of gc_isect_watertight for both triangles of a pack at
+ * once: lane l of every vector is exactly the scalar test's value for the
+ * pack's triangle l (the same IEEE operations in the same order; no
+ * contraction).  Returns bit l set when lane l's ray line passes through its
+ * triangle; gc_isect_watertight_finish decides the rest for that lane. */
+GC_INLINE int gc_isect_watertight_signs2(const gc_ray2 *q, const double *c)
+{
+    const double *px = c + q->kx, *py = c + q->ky, *pz = c + q->kz;
+    const __m128d a_z = _mm_sub_pd(_mm_loadu_pd(pz), q->oz);
+    const __m128d b_z = _mm_sub_pd(_mm_loadu_pd(pz + 3 * GC_LANES), q->oz);
+    const __m128d c_z = _mm_sub_pd(_mm_loadu_pd(pz + 6 * GC_LANES), q->oz);
+    const __m128d ax = _mm_sub_pd(_mm_sub_pd(_mm_loadu_pd(px), q->ox), _mm_mul_pd(q->sx, a_z));
+    const __m128d ay = _mm_sub_pd(_mm_sub_pd(_mm_loadu_pd(py), q->oy), _mm_mul_pd(q->sy, a_z));
+    const __m128d bx = _mm_sub_pd(_mm_sub_pd(_mm_loadu_pd(px + 3 * GC_LANES), q->ox), _mm_mul_pd(q->sx, b_z));
+    const __m128d by = _mm_sub_pd(_mm_sub_pd(_mm_loadu_pd(py + 3 * GC_LANES), q->oy), _mm_mul_pd(q->sy, b_z));
+    const __m128d cx = _mm_sub_pd(_mm_sub_pd(_mm_loadu_pd(px + 6 * GC_LANES), q->ox), _mm_mul_pd(q->sx, c_z));
+    const __m128d cy = _mm_sub_pd(_mm_sub_pd(_mm_loadu_pd(py + 6 * GC_LANES), q->oy), _mm_mul_pd(q->sy, c_z));
+    const __m128d u = _mm_sub_pd(_mm_mul_pd(cx, by), _mm_mul_pd(cy, bx));
+    const __m128d v = _mm_sub_pd(_mm_mul_pd(ax, cy), _mm_mul_pd(ay, cx));
+    const __m128d w = _mm_sub_pd(_mm_mul_pd(bx, ay), _mm_mul_pd(by, ax));
+    const __m128d zero = _mm_setzero_pd();
+    const __m128d ge = _mm_and_pd(_mm_and_pd(_mm_cmpge_pd(u, zero), _mm_cmpge_pd(v, zero)), _mm_cmpge_pd(w, zero));
+    const __m128d le = _mm_and_pd(_mm_and_pd(_mm_cmple_pd(u, zero), _mm_cmple_pd(v, zero)), _mm_cmple_pd(w, zero));
+    return _mm_movemask_pd(_mm_or_pd(ge, le));
+}
+#endif
 
 #endif /* GC_TRIANGLE_H */
