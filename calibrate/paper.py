@@ -439,7 +439,7 @@ def cmd_paper(args) -> int:
     from .cli import _Progress
     from .predict import constants_from_args, resolve_constants
 
-    src = constants_from_args(args)
+    src = constants_from_args(args, rays="isotropic")  # the claims are about isotropic lines, which it traces
     r = resolve_constants(**src).ratio
     with _Progress(not args.quiet, "measuring") as bar:
         report = run_paper(ratio=r, quick=args.quick, progress=bar, status=bar.status)

@@ -297,7 +297,7 @@ def cmd_render(args) -> int:
         if not (np.all(np.isfinite(v)) and np.any(v != 0)):
             raise UserError(f"--view must be a finite non-zero 3-vector DX DY DZ, got {' '.join(map(str, args.view))}")
     scene = Scene.load(args.mesh)
-    src = {} if args.resolution is not None else constants_from_args(args)
+    src = {} if args.resolution is not None else constants_from_args(args, rays="camera")  # it traces camera rays
     if not args.quiet and not args.json and sys.stderr.isatty():
         print(f"rendering {scene.name} ({scene.n_triangles:,} triangles) at {width}x{height} ...", file=sys.stderr)
     result = render(scene, width=width, height=height, resolution=args.resolution, levels=args.levels,
