@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import resource
 import subprocess
 import sys
 from pathlib import Path
@@ -26,6 +27,11 @@ FUZZ_SECONDS = 15
 FUZZ_SEED = 1
 #: Largest generated input, bytes.
 MAX_INPUT_BYTES = 4096
+#: Memory the target may use, MB, on top of what it inherits: on Linux a child's peak RSS
+#: (what libFuzzer's -rss_limit_mb checks) starts at its parent's, kept across fork and
+#: exec, so a pytest worker that has grown to 2.5 GB would fail libFuzzer's default
+#: 2,048 MB at its first input.
+RSS_BUDGET_MB = 2048
 
 pytestmark = pytest.mark.skipif(importlib.util.find_spec("atheris") is None,
                                 reason="atheris is not installed (pip install -e '.[test]' installs it); "
@@ -36,7 +42,9 @@ def test_fuzz_mesh_ingestion_and_grid_building(tmp_path):
     found = tmp_path / "new_inputs"
     found.mkdir()
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO)] + [p for p in [os.environ.get("PYTHONPATH")] if p]))
+    inherited_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss // 1024  # KB on Linux
     cmd = [sys.executable, str(FUZZ_DIR / "fuzz_mesh.py"), str(found), str(FUZZ_DIR / "corpus"),
+           f"-rss_limit_mb={inherited_mb + RSS_BUDGET_MB}", f"-malloc_limit_mb={RSS_BUDGET_MB}",
            f"-dict={FUZZ_DIR / 'mesh.dict'}", f"-max_total_time={FUZZ_SECONDS}", f"-seed={FUZZ_SEED}",
            f"-max_len={MAX_INPUT_BYTES}", f"-artifact_prefix={tmp_path}{os.sep}", "-print_final_stats=1"]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=FUZZ_SECONDS + 120, cwd=tmp_path)
