@@ -25,8 +25,8 @@ Schema (version :data:`SCHEMA_VERSION`), one JSON object::
       "meta": {...},                    # free-form (tool version, budget, wall time, ...)
       "by_rays": {                      # optional: the same fit on one ray set's in-context
         "camera": {"constants": {...}, "samples": {...}, "diagnostics": {...}},
-        "isotropic": {...}              #   measurements alone (coherent rays step for about
-      }                                 #   half the cost of incoherent ones); predictions for
+        "isotropic": {...}              #   measurements alone (coherent rays step for 1/2 to
+      }                                 #   2/3 of the cost of incoherent ones); predictions for
     }                                   #   that ray set use it, others use ``constants``
 
 Constants are in ns per unit (ray, cell step, triangle test, subgrid entry).
@@ -564,7 +564,7 @@ def fit_by_rays(measurements: list, *, seed: int = 0, intersector: str | None = 
 
     Rays of one set share a coherence: camera rays step in lockstep through
     neighbouring cells, isotropic ones do not, and a cell step of an incoherent
-    ray costs about twice as much (docs/calibration.md), so one set of
+    ray costs 1.6 to 2.3 times as much (docs/calibration.md), so one set of
     constants for both fits neither well.
     Returns ({ray set: FitResult}, {ray set: why it was not fitted alone}).
     """
