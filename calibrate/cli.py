@@ -134,6 +134,11 @@ def _ratio_line(r: dict, label: str = "r = T_int/T_step") -> str:
             f"(half-width {100 * half:.1f}% of the median)")
 
 
+def _constants_by_rays(cal: dict) -> dict:
+    """Ray set -> constants of each ray set fitted alone (``by_rays``); {} when there are none."""
+    return {name: entry["constants"] for name, entry in (cal.get("by_rays") or {}).items()}
+
+
 def _by_rays_table(cal: dict, title: str):
     """The constants of each ray set fitted alone (``by_rays``), or None when there are none."""
     from rich.table import Table
@@ -192,7 +197,7 @@ def cmd_run(args) -> int:
         _print_json(dict(constants=cal["constants"], wall_s=result.wall_s, holdout_mare=result.holdout_mare,
                          holdout_mare_pooled=result.holdout_mare_pooled,
                          holdout_mare_by_rays=result.holdout_mare_by_rays or {},
-                         constants_by_rays={n: e["constants"] for n, e in (cal.get("by_rays") or {}).items()},
+                         constants_by_rays=_constants_by_rays(cal),
                          ratio_rel_width=result.ratio_rel_width, out=str(out)))
         return 0
     console.print(_constants_table(cal, f"calibration of this host ({cal['meta']['intersector']} intersector), "
@@ -229,7 +234,7 @@ def cmd_fit(args) -> int:
     calfile.save(out, new)
     if args.json:
         _print_json(dict(constants=new["constants"],
-                         constants_by_rays={n: e["constants"] for n, e in (new.get("by_rays") or {}).items()},
+                         constants_by_rays=_constants_by_rays(new),
                          out=str(out)))
     else:
         _console().print(_constants_table(new, f"re-fit of {src.name}"))
@@ -255,7 +260,7 @@ def cmd_show(args) -> int:
         written = []
     if args.json:
         _print_json(dict(constants=cal["constants"], isolated=cal.get("isolated", {}),
-                         constants_by_rays={n: e["constants"] for n, e in (cal.get("by_rays") or {}).items()},
+                         constants_by_rays=_constants_by_rays(cal),
                          diagnostics=cal["diagnostics"], meta=cal.get("meta", {}), plots=[str(p) for p in written]))
         return 0
     console = _console()

@@ -480,7 +480,7 @@ def header_text(cal: dict | None = None, ratio: float | None = None, source: str
     from .calfile import fit_for_rays
 
     consts = header_constants(cal, ratio, rays)
-    fitted_on = None if cal is None else fit_for_rays(cal, rays)[1]
+    block, fitted_on = (None, None) if cal is None else fit_for_rays(cal, rays)
     lines = ["/* grid_tuning.h: grid resolutions for this host, from gridcal's `calibrate export`.",
              " *",
              " * Provenance:"]
@@ -496,7 +496,7 @@ def header_text(cal: dict | None = None, ratio: float | None = None, source: str
             if fp.get(key) is not None:
                 lines.append(f" *   {label}: {sanitize_comment(fp[key])}")
         lines.append(f" *   constants fitted on: {sanitize_comment(fitted_on) + ' rays alone' if fitted_on else 'all ray sets'}")
-        diag = (fit_for_rays(cal, rays)[0].get("diagnostics")) or {}
+        diag = block.get("diagnostics") or {}
         if diag.get("converged") is not None:
             lines.append(f" *   posterior converged: {sanitize_comment(diag.get('converged'))}")
     lines += [" *",

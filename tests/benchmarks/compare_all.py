@@ -24,7 +24,7 @@ from pathlib import Path
 
 from calibrate import Scene
 from calibrate.compare import DEFAULT_POINTS, compare_scene, plot, summarise
-from calibrate.predict import load_calibration_constants
+from calibrate.predict import constants_from_args, resolve_constants
 from calibrate.scenes import builtin_names
 
 MESHES = Path(__file__).resolve().parents[3] / "shared" / "meshes"
@@ -59,11 +59,8 @@ def main() -> None:
     if args.ratio is None and not args.calibration:
         args.calibration = "calibration.json"  # a calibration belongs to its kernels: no built-in r
     if args.calibration:
-        k = load_calibration_constants(args.calibration, args.ray_set)
-        source = dict(samples={f"{n}_ns": k.samples[n] for n in ("t_setup", "t_step", "t_int", "t_sub")},
-                      constants={f"{n}_ns": getattr(k, n) for n in ("t_setup", "t_step", "t_int", "t_sub")})
-        if k.fitted_on:
-            source["constants"]["fitted_on"] = k.fitted_on
+        source = constants_from_args(argparse.Namespace(calibration=args.calibration, ratio=None), rays=args.ray_set)
+        k = resolve_constants(**source)
     else:
         source = dict(ratio=args.ratio)
     names = list(builtin_names())
