@@ -10,6 +10,8 @@ Schema (version :data:`SCHEMA_VERSION`), one JSON object::
         "t_step_ns":  {...},
         "t_int_ns":   {...},
         "t_sub_ns":   {...} or null,    # null when no measurement entered a subgrid
+        "t_mem_ns":   {...} or null,    # the memory effect (models/memory.py); null or absent
+                                        #   when not fitted (diagnostics.t_mem_skipped says why)
         "ratio":      {...}             # r = T_int / T_step, dimensionless
       },
       "isolated": {"t_step_ns": {"median": m, "ci95": [lo, hi]}, ...},
@@ -20,16 +22,19 @@ Schema (version :data:`SCHEMA_VERSION`), one JSON object::
       "measurements": [                 # every raw measurement
         {"kind": "isolated" | "in_context", "scene": str, "resolution": int | [..] | null,
          "intersector": str | null, "rays": int, "steps": int, "tests": int,
-         "subgrids": int, "values_ns": [ns per batch, ...], ...extra keys kept}
+         "subgrids": int, "values_ns": [ns per batch, ...],
+         "memory_bytes": int, "misses": float,   # optional: the grid's bytes, and the cache
+         ...extra keys kept}                     #   lines its batch fetched from beyond the cache
       ],
-      "meta": {...},                    # free-form (tool version, budget, wall time, ...)
+      "meta": {...},                    # free-form (tool version, budget, wall time, ...);
+                                        #   cache_bytes: the cache T_mem was measured against
       "by_rays": {                      # optional: the same fit on one ray set's in-context
         "camera": {"constants": {...}, "samples": {...}, "diagnostics": {...}},
         "isotropic": {...}              #   measurements alone (coherent rays step for 1/2 to
       }                                 #   2/3 of the cost of incoherent ones); predictions for
     }                                   #   that ray set use it, others use ``constants``
 
-Constants are in ns per unit (ray, cell step, triangle test, subgrid entry).
+Constants are in ns per unit (ray, cell step, triangle test, subgrid entry, cache line).
 :func:`load` validates everything and raises :class:`calibrate._io.UserError`
 (a ``ValueError``) whose message names the file and the offending key.
 """
@@ -192,8 +197,9 @@ def _validate_samples(x, where: str, constants: Mapping) -> None:
     for key in ("t_setup_ns", "t_step_ns", "t_int_ns"):
         if key not in cols:
             _fail(f"{where}.columns", f"missing column {key!r}")
-    if constants.get("t_sub_ns") is not None and "t_sub_ns" not in cols:
-        _fail(f"{where}.columns", "missing column 't_sub_ns' although constants.t_sub_ns is set")
+    for key in ("t_sub_ns", "t_mem_ns"):
+        if constants.get(key) is not None and key not in cols:
+            _fail(f"{where}.columns", f"missing column {key!r} although constants.{key} is set")
     values = obj["values"]
     if not isinstance(values, list) or not values:
         _fail(f"{where}.values", "must be a non-empty array of rows")
@@ -250,6 +256,12 @@ def _validate_measurement(m, where: str) -> None:
             _fail(f"{where}.{key}", f"negative count {v:g}")
         if not v.is_integer():
             _fail(f"{where}.{key}", f"count must be a whole number, got {v:g}")
+    if "memory_bytes" in obj:
+        v = _finite(obj["memory_bytes"], f"{where}.memory_bytes")
+        if v < 0 or not v.is_integer():
+            _fail(f"{where}.memory_bytes", f"must be a whole number of bytes >= 0, got {v:g}")
+    if "misses" in obj and _finite(obj["misses"], f"{where}.misses") < 0:
+        _fail(f"{where}.misses", f"negative count {obj['misses']:g}")
     if obj["rays"] < 1:
         _fail(f"{where}.rays", "a batch must trace at least one ray")
     vals = obj["values_ns"]
@@ -268,6 +280,11 @@ def _validate_fit(obj: Mapping, prefix: str) -> None:
     if "converged" in diag and diag["converged"] is not True:
         _fail(f"{prefix}diagnostics.converged",
               "is not true: the posterior did not converge, so the constants are not a result")
+
+
+def _has_t_mem(fit: Mapping) -> bool:
+    c = fit.get("constants") if isinstance(fit, Mapping) else None
+    return isinstance(c, Mapping) and c.get("t_mem_ns") is not None
 
 
 def validate(cal: Any) -> dict:
@@ -292,6 +309,10 @@ def validate(cal: Any) -> dict:
     if ver < 1:
         _fail("schema_version", f"must be >= 1, got {ver}")
     _object(cal["fingerprint"], "fingerprint")
+    for where in ("meta", "fingerprint"):
+        v = (cal.get(where) or {}).get("cache_bytes") if isinstance(cal.get(where), dict) else None
+        if v is not None and not (_is_number(v) and float(v).is_integer() and v > 0):
+            _fail(f"{where}.cache_bytes", f"must be a whole number of bytes > 0, got {v!r}")
     _validate_fit(cal, "")
     _validate_constants(cal.get("isolated", {}), "isolated", partial=True)
     if "by_rays" in cal:
@@ -313,6 +334,10 @@ def validate(cal: Any) -> dict:
     for i, m in enumerate(meas):
         _validate_measurement(m, f"measurements[{i}]")
     _object(cal.get("meta", {}), "meta")
+    if _has_t_mem(cal) or any(_has_t_mem(e) for e in (cal.get("by_rays") or {}).values()):
+        if cache_bytes_of(cal) is None:
+            _fail("meta.cache_bytes", "missing: the constants have T_mem, which needs the cache size it was "
+                                      "measured against")
     return cal
 
 
@@ -469,6 +494,16 @@ def fit_for_rays(cal: Mapping, rays: str | None) -> tuple[Mapping, str | None]:
     return (entry, rays) if entry is not None else (cal, None)
 
 
+def cache_bytes_of(cal: Mapping) -> int | None:
+    """The cache size (bytes) a calibration's T_mem was measured against: ``meta.cache_bytes``,
+    else ``fingerprint.cache_bytes``; None when the file records neither."""
+    for where in ("meta", "fingerprint"):
+        v = (cal.get(where) or {}).get("cache_bytes")
+        if v is not None:
+            return int(v)
+    return None
+
+
 def samples_by_name(cal: Mapping) -> dict[str, np.ndarray]:
     """Posterior samples of a (validated) calibration as name -> (S,) float arrays.
 
@@ -498,7 +533,8 @@ def design_from_measurements(
     Records without values (an interrupted series) are skipped, and so are
     records marked ``held_back`` (kept out of the fit to test its predictions)
     unless ``include_held_back``.
-    Returns {rays, steps, tests, subgrids: (J,) float arrays, times_ns: J lists}.
+    Returns {rays, steps, tests, subgrids: (J,) float arrays, times_ns: J lists}, and
+    ``misses`` (the memory effect's count) when every chosen record has it.
     """
     if kind not in MEASUREMENT_KINDS:
         raise UserError(f"kind must be one of {', '.join(MEASUREMENT_KINDS)}, got {kind!r}")
@@ -516,8 +552,30 @@ def design_from_measurements(
         which = f" for intersector {intersector!r}" if intersector else ""
         raise UserError(f"no {kind} measurements with values{which}: nothing to fit")
     design = {k: np.array([float(m.get(k, 0)) for m in chosen]) for k in COUNT_FIELDS}
+    if all("misses" in m for m in chosen):
+        design["misses"] = np.array([float(m["misses"]) for m in chosen])
     design["times_ns"] = [list(map(float, m["values_ns"])) for m in chosen]
     return design
+
+
+def fit_in_context(design: Mapping, **fit_kwargs) -> _fit.FitResult:
+    """:func:`calibrate.fit.fit` with the memory term when the design carries ``misses``.
+
+    When T_mem cannot be fitted (no batch fetches enough from beyond the cache for
+    the design to tell T_mem from the other terms, or the fit does not converge
+    with it), the design is fitted without it, and ``diagnostics.t_mem_skipped``
+    says why.  An error of the fit without it is raised as is.
+    """
+    try:
+        return _fit.fit(design, **fit_kwargs)
+    except (ValueError, _fit.ConvergenceError) as exc:
+        misses = design.get("misses")
+        if misses is None or not np.any(np.asarray(misses) > 0):
+            raise
+        why = str(exc)
+    result = _fit.fit({k: v for k, v in design.items() if k != "misses"}, **fit_kwargs)
+    result.diagnostics["t_mem_skipped"] = f"T_mem not fitted, the memory effect is left out: {why}"
+    return result
 
 
 def refit(cal: Mapping, *, seed: int = 0, intersector: str | None = None, **fit_kwargs) -> dict:
@@ -537,7 +595,7 @@ def refit(cal: Mapping, *, seed: int = 0, intersector: str | None = None, **fit_
             fit_kwargs["priors"] = {str(k): (float(v[0]), float(v[1])) for k, v in stored.items()}
         except (TypeError, ValueError, IndexError):
             raise UserError("diagnostics.priors: must map constant names to [median_ns, sigma_log]") from None
-    result = _fit.fit(design, seed=seed, **fit_kwargs)
+    result = fit_in_context(design, seed=seed, **fit_kwargs)
     by_rays, skipped = fit_by_rays(cal["measurements"], seed=seed, intersector=intersector, **fit_kwargs)
     meta = {k: v for k, v in cal.get("meta", {}).items() if k != "by_rays_skipped"}
     if skipped:
@@ -576,7 +634,7 @@ def fit_by_rays(measurements: list, *, seed: int = 0, intersector: str | None = 
         chosen = [m for m in measurements if m["kind"] == "in_context" and m.get("ray_set") == name]
         try:
             design = design_from_measurements(chosen, "in_context", intersector)
-            fits[name] = _fit.fit(design, seed=seed, **fit_kwargs)
+            fits[name] = fit_in_context(design, seed=seed, **fit_kwargs)
         except (ValueError, _fit.ConvergenceError) as exc:
             skipped[name] = str(exc)
     return fits, skipped

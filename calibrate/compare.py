@@ -176,7 +176,7 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
                          "median_ns", "mad_ns", "steps", "tests", "subgrids", "cells", "memory_bytes", "skipped")})
             if "median_ns" in m:
                 steps, tests, subs, source = _model_counts(stats, terms, spec, m)
-                band = k.cost_samples(steps, tests, subs)
+                band = k.cost_samples(steps, tests, subs, float(m.get("memory_bytes") or 0.0))
                 p["predicted"] = dict(median=float(np.median(band)), ci95=[float(np.percentile(band, 2.5)),
                                                                          float(np.percentile(band, 97.5))],
                                       counts=source)

@@ -39,6 +39,9 @@ CONSTANTS = (("t_setup_ns", "GRIDCAL_T_SETUP_NS", "T_setup, cost of one ray's se
              ("t_step_ns", "GRIDCAL_T_STEP_NS", "T_step, cost of one cell step", "ns per cell step"),
              ("t_int_ns", "GRIDCAL_T_INT_NS", "T_int, cost of one ray/triangle test", "ns per test"),
              ("t_sub_ns", "GRIDCAL_T_SUB_NS", "T_sub, cost of entering one subgrid", "ns per subgrid entered"),
+             ("t_mem_ns", "GRIDCAL_T_MEM_NS", "T_mem, cost of one cache line fetched from beyond the cache "
+              "(the memory effect, GRIDCAL_CACHE_BYTES below; `calibrate predict` adds it, the resolution "
+              "functions of this header do not)", "ns per cache line"),
              ("ratio", "GRIDCAL_RATIO", "r = T_int / T_step, the ratio every resolution below uses",
               "dimensionless"))
 #: The public functions of the header (``--json`` lists them).
@@ -530,6 +533,12 @@ def header_text(cal: dict | None = None, ratio: float | None = None, source: str
             continue
         c = consts[key]
         text += _constant_block(macro, what, unit, c["median"], c["ci95"], source_note)
+        if key == "t_mem_ns":
+            from .calfile import cache_bytes_of
+
+            cache = cache_bytes_of(cal)
+            text += (f"/* The per-core cache T_mem was measured against: bytes. */\n"
+                     f"#ifndef GRIDCAL_CACHE_BYTES\n#define GRIDCAL_CACHE_BYTES {int(cache)}.0\n#endif\n")
     text += _c_functions()
     text += "\n#endif /* GRIDCAL_GRID_TUNING_H */\n"
     return text

@@ -82,14 +82,17 @@ __all__ = [
 ]
 
 # Count column in a design -> the constant (ns per unit) it multiplies.
-COUNT_KEYS = ("rays", "steps", "tests", "subgrids")
-CONSTANT_NAMES = ("t_setup_ns", "t_step_ns", "t_int_ns", "t_sub_ns")
+# ``misses`` is the memory effect's count (models/memory.py): cache lines fetched from
+# beyond the cache, fitted only when a design carries it.
+COUNT_KEYS = ("rays", "steps", "tests", "subgrids", "misses")
+CONSTANT_NAMES = ("t_setup_ns", "t_step_ns", "t_int_ns", "t_sub_ns", "t_mem_ns")
 RATIO_NAME = "ratio"
 CONSTANT_LABELS = {
     "t_setup_ns": "T_setup",
     "t_step_ns": "T_step",
     "t_int_ns": "T_int",
     "t_sub_ns": "T_sub",
+    "t_mem_ns": "T_mem",
 }
 # Columns that must be present; subgrids is optional (uniform grids only).
 REQUIRED_COUNT_KEYS = ("rays", "steps", "tests")
@@ -294,7 +297,7 @@ def prepare_design(design: Mapping, required: Sequence[str] = REQUIRED_COUNT_KEY
     """Validate a design and reduce it to per-configuration statistics.
 
     design : mapping with ``rays``, ``steps``, ``tests`` (J,) batch totals,
-        optional ``subgrids`` (J,), and ``times_ns``: a (J, K) array or J
+        optional ``subgrids`` and ``misses`` (J,), and ``times_ns``: a (J, K) array or J
         sequences of repeat values (ns per batch, > 0).
 
     required : count columns that must be present and non-zero somewhere

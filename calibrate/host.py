@@ -18,7 +18,7 @@ from pathlib import Path
 
 from .protocol import timer_info
 
-__all__ = ["FINGERPRINT_PACKAGES", "fingerprint", "package_versions"]
+__all__ = ["FINGERPRINT_PACKAGES", "cache_bytes", "fingerprint", "package_versions"]
 
 # Packages whose versions affect results or their fits.
 FINGERPRINT_PACKAGES = ("numpy", "nlopt", "emcee", "jax", "trimesh")
@@ -26,6 +26,14 @@ FINGERPRINT_PACKAGES = ("numpy", "nlopt", "emcee", "jax", "trimesh")
 CPUINFO_PATH = Path("/proc/cpuinfo")
 CPUFREQ_DIR = Path("/sys/devices/system/cpu/cpu0/cpufreq")
 KHZ_PER_MHZ = 1000.0
+CACHE_DIR = Path("/sys/devices/system/cpu/cpu0/cache")
+#: The cache level the memory effect is measured against (models/memory.py): the
+#: per-core level-2 cache, which a traversal's cells and triangles spill out of first.
+CACHE_LEVEL = 2
+#: Assumed when the operating system does not say (1 MiB: the smallest per-core
+#: level-2 cache of current x86-64 and arm64 server cores); stored as assumed.
+DEFAULT_CACHE_BYTES = 1 << 20
+_SIZE_UNITS = {"": 1, "K": 1 << 10, "M": 1 << 20, "G": 1 << 30}
 
 
 def _read_text(path: Path) -> str | None:
@@ -96,6 +104,40 @@ def _safe(probe, default=None):
         return default
 
 
+def _parse_size(text: str | None) -> int | None:
+    """sysfs cache size ("2048K", "1M", "512") -> bytes, or None."""
+    if text is None:
+        return None
+    t = text.strip().upper()
+    unit = t[-1:] if t[-1:] in ("K", "M", "G") else ""
+    digits = t[:-1] if unit else t
+    if not digits.isdigit() or int(digits) <= 0:
+        return None
+    return int(digits) * _SIZE_UNITS[unit]
+
+
+def cache_bytes(level: int = CACHE_LEVEL, cache_dir: Path | None = None) -> tuple[int, str]:
+    """(bytes, source) of CPU 0's data or unified cache at ``level``.
+
+    source is the sysfs file read, or "assumed" with DEFAULT_CACHE_BYTES when the
+    operating system does not say (not Linux, or no such level).
+    """
+    base = CACHE_DIR if cache_dir is None else Path(cache_dir)
+    try:
+        entries = sorted(base.glob("index*"))
+    except OSError:
+        entries = []
+    for entry in entries:
+        lvl = _read_text(entry / "level")
+        kind = _read_text(entry / "type")
+        if lvl is None or kind is None or lvl.strip() != str(level) or kind.strip() not in ("Data", "Unified"):
+            continue
+        size = _parse_size(_read_text(entry / "size"))
+        if size is not None:
+            return size, str(entry / "size")
+    return DEFAULT_CACHE_BYTES, "assumed"
+
+
 def fingerprint(extra: dict | None = None) -> dict:
     """Facts about this host that a calibration depends on.
 
@@ -106,11 +148,13 @@ def fingerprint(extra: dict | None = None) -> dict:
     affinity (list of CPU indices or None), governor, cpu_mhz, os, kernel,
     platform, machine, python, python_implementation, packages (name ->
     version or None), timer (see ``protocol.timer_info``),
-    timer_resolution_ns, date_utc (ISO 8601). Missing facts are None.
+    timer_resolution_ns, cache_bytes and cache_source (see :func:`cache_bytes`),
+    date_utc (ISO 8601). Missing facts are None.
     """
     cpuinfo = _read_text(CPUINFO_PATH)
     governor = _read_text(CPUFREQ_DIR / "scaling_governor")
     timer = _safe(timer_info, {})
+    cache, cache_source = _safe(cache_bytes, (DEFAULT_CACHE_BYTES, "assumed"))
     fp = {
         "cpu_model": _safe(lambda: _cpu_model(cpuinfo)),
         "logical_cores": _safe(os.cpu_count),
@@ -126,6 +170,8 @@ def fingerprint(extra: dict | None = None) -> dict:
         "packages": package_versions(),
         "timer": timer,
         "timer_resolution_ns": timer.get("resolution_ns"),
+        "cache_bytes": cache,
+        "cache_source": cache_source,
         "date_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
     }
     if extra:

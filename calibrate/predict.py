@@ -43,8 +43,9 @@ import numpy as np
 
 from models import baselines as _baselines
 from models.closed_forms import cells_to_resolution, l_level_cells
-from models.effects import select_effects, termination_fraction
+from models.effects import EFFECT_TOLERANCE, select_effects, termination_fraction
 from models.general import Terms, expected_refs, predict_uniform, steps_per_ray
+from models.memory import lines_beyond_cache
 from models.nested import MAX_LEVELS, TooManyPairs, clustering_change, nested_counts
 from models.portable import paper_k, paper_level_cells
 from models.stats import scene_class, triangle_geometry
@@ -125,6 +126,11 @@ SIM_SEED = 0
 #: Above this many cells a simulated candidate is skipped (build memory and time).
 SIM_MAX_CELLS = 2 ** 24
 
+# --- the memory effect (models/memory.py) --------------------------------------------
+#: Per-axis scales of the memory-free optimum searched when a calibration's T_mem makes the
+#: memory effect matter (2^(j/8), j = -16..16: 1/4x to 4x per axis, 64x in cells each way).
+MEMORY_SEARCH_SCALES = tuple(2.0 ** (j / 8.0) for j in range(-16, 17))
+
 _STATS_CACHE: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 
 
@@ -135,15 +141,19 @@ _STATS_CACHE: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 class Constants:
     """Medians and posterior samples of the hardware constants.
 
-    Attributes: ``t_setup, t_step, t_int, t_sub`` (floats, medians) and
+    Attributes: ``t_setup, t_step, t_int, t_sub, t_mem`` (floats, medians) and
     ``samples`` (dict name -> (S,) float64, same names without ``_ns``);
     ``units`` is ``"ns"`` or ``"T_step"`` (ratio mode); ``notes`` lists assumptions;
-    ``fitted_on`` is the ray set the constants were fitted on alone, or None (all of them).
+    ``fitted_on`` is the ray set the constants were fitted on alone, or None (all of them);
+    ``cache_bytes`` is the cache T_mem was measured against (None without a memory term).
     """
 
-    def __init__(self, t_setup, t_step, t_int, t_sub, samples, units, notes, fitted_on=None):
+    def __init__(self, t_setup, t_step, t_int, t_sub, samples, units, notes, fitted_on=None, t_mem=0.0,
+                 cache_bytes=None):
         self.t_setup, self.t_step, self.t_int, self.t_sub = (float(t_setup), float(t_step), float(t_int),
                                                              float(t_sub))
+        self.t_mem = float(t_mem)
+        self.cache_bytes = None if cache_bytes is None else int(cache_bytes)
         self.samples = samples
         self.units = units
         self.notes = notes
@@ -153,14 +163,28 @@ class Constants:
     def ratio(self) -> float:
         return self.t_int / self.t_step
 
-    def cost_samples(self, steps, tests, subgrids=0.0) -> np.ndarray:
-        """(S,) predicted cost per ray for fixed counts, one per posterior sample."""
-        s = self.samples
-        return s["t_setup"] + s["t_step"] * steps + s["t_int"] * tests + s["t_sub"] * subgrids
+    @property
+    def has_memory(self) -> bool:
+        """The memory effect's term is in the cost (a calibration fitted T_mem)."""
+        return self.t_mem > 0 and self.cache_bytes is not None
 
-    def cost(self, steps, tests, subgrids=0.0) -> float:
-        """Predicted cost per ray under the median constants."""
-        return self.t_setup + self.t_step * steps + self.t_int * tests + self.t_sub * subgrids
+    def lines(self, steps, tests, memory_bytes) -> float:
+        """Cache lines per ray fetched from beyond the cache (models/memory.py); 0 without T_mem."""
+        if not self.has_memory:
+            return 0.0
+        return float(lines_beyond_cache(steps, tests, memory_bytes, self.cache_bytes))
+
+    def cost_samples(self, steps, tests, subgrids=0.0, memory_bytes=0.0) -> np.ndarray:
+        """(S,) predicted cost per ray for fixed counts (and grid bytes), one per posterior sample."""
+        s = self.samples
+        out = s["t_setup"] + s["t_step"] * steps + s["t_int"] * tests + s["t_sub"] * subgrids
+        lines = self.lines(steps, tests, memory_bytes)
+        return out + s["t_mem"] * lines if lines > 0 else out
+
+    def cost(self, steps, tests, subgrids=0.0, memory_bytes=0.0) -> float:
+        """Predicted cost per ray under the median constants (the memory term needs the grid's bytes)."""
+        return (self.t_setup + self.t_step * steps + self.t_int * tests + self.t_sub * subgrids
+                + self.t_mem * self.lines(steps, tests, memory_bytes))
 
 
 def _median_of(value, name):
@@ -178,9 +202,10 @@ def _median_of(value, name):
 def resolve_constants(constants=None, samples=None, ratio=None) -> Constants:
     """Constants from a calibration's medians/samples or from a ratio alone.
 
-    constants : mapping ``t_setup_ns, t_step_ns, t_int_ns[, t_sub_ns]`` -> ns (a float or
-        a ``{"median": ...}`` block, e.g. a calibration's ``constants``); an optional
-        ``fitted_on`` names the ray set they were fitted on alone (a note says so).
+    constants : mapping ``t_setup_ns, t_step_ns, t_int_ns[, t_sub_ns, t_mem_ns]`` -> ns (a
+        float or a ``{"median": ...}`` block, e.g. a calibration's ``constants``); an optional
+        ``fitted_on`` names the ray set they were fitted on alone (a note says so), and
+        ``cache_bytes`` the cache T_mem was measured against (required with T_mem).
     samples : mapping of the same names -> (S,) posterior samples (ns), e.g.
         :func:`calibrate.calfile.samples_by_name`; medians default to theirs.
     ratio : ``T_int / T_step`` > 0 (no calibration; costs in units of T_step).
@@ -199,12 +224,13 @@ def resolve_constants(constants=None, samples=None, ratio=None) -> Constants:
         notes.append(f"ratio mode: T_setup = 0, T_step = 1, T_int = {r:g}, T_sub = "
                      f"{RATIO_MODE_T_SUB_IN_T_STEP:g} (assumed); costs are in units of T_step")
         return Constants(0.0, 1.0, r, RATIO_MODE_T_SUB_IN_T_STEP,
-                         dict(t_setup=one(0.0), t_step=one(1.0), t_int=one(r), t_sub=one(RATIO_MODE_T_SUB_IN_T_STEP)),
+                         dict(t_setup=one(0.0), t_step=one(1.0), t_int=one(r), t_sub=one(RATIO_MODE_T_SUB_IN_T_STEP),
+                              t_mem=one(0.0)),
                          "T_step", notes)
     if constants is None and samples is None:
         raise ValueError("no calibration: run `calibrate run` first, pass a calibration file, or give a ratio "
                          "T_int/T_step")
-    names = ("t_setup", "t_step", "t_int", "t_sub")
+    names = ("t_setup", "t_step", "t_int", "t_sub", "t_mem")
     arrays = {}
     if samples is not None:
         for n in names:
@@ -238,6 +264,20 @@ def resolve_constants(constants=None, samples=None, ratio=None) -> Constants:
     if "t_sub" not in med:
         med["t_sub"] = RATIO_MODE_T_SUB_IN_T_STEP * med["t_step"]
         notes.append(f"the calibration has no T_sub: assumed {RATIO_MODE_T_SUB_IN_T_STEP:g} x T_step")
+    cache = None if constants is None else constants.get("cache_bytes")
+    if "t_mem" in med and med["t_mem"] > 0:
+        try:
+            cache = int(cache)
+        except (TypeError, ValueError):
+            raise ValueError(f"a calibration with T_mem needs the cache size it was measured against "
+                             f"(cache_bytes), got {cache!r}") from None
+        if cache <= 0:
+            raise ValueError(f"cache_bytes must be > 0, got {cache}")
+        notes.append(f"memory effect: T_mem = {med['t_mem']:.3g} ns per cache line fetched from beyond the "
+                     f"host's {cache / 2 ** 20:.3g} MiB cache")
+    else:
+        med["t_mem"] = 0.0
+        cache = None
     size = next(iter(arrays.values())).size if arrays else 1
     for n in names:
         if n not in arrays:
@@ -245,7 +285,7 @@ def resolve_constants(constants=None, samples=None, ratio=None) -> Constants:
     if np.any(arrays["t_step"] <= 0) or np.any(arrays["t_int"] <= 0):
         raise ValueError("posterior samples of t_step_ns and t_int_ns must be > 0")
     return Constants(med["t_setup"], med["t_step"], med["t_int"], med["t_sub"], arrays, "ns", notes,
-                     fitted_on=fitted_on)
+                     fitted_on=fitted_on, t_mem=med["t_mem"], cache_bytes=cache)
 
 
 def load_calibration_constants(path, rays: str | None = None) -> Constants:
@@ -261,7 +301,10 @@ def load_calibration_constants(path, rays: str | None = None) -> Constants:
         raise UserError(f"{p}: no such calibration file; run `calibrate run` to create one, or pass --ratio R")
     cal = calfile.load(p)
     block, fitted_on = calfile.fit_for_rays(cal, rays)
-    constants = dict(block["constants"], fitted_on=fitted_on) if fitted_on else block["constants"]
+    constants = dict(block["constants"], fitted_on=fitted_on) if fitted_on else dict(block["constants"])
+    cache = calfile.cache_bytes_of(cal)
+    if cache is not None:
+        constants["cache_bytes"] = cache
     return resolve_constants(constants=constants, samples=calfile.samples_by_name(block))
 
 
@@ -394,22 +437,61 @@ def _effect_dicts(sel):
     return [dict(name=e.name, used=bool(e.used), change=float(e.change), reason=e.reason) for e in sel.effects]
 
 
+def _uniform_counts(stats, res, k: Constants, terms):
+    """(steps, tests, references, memory bytes) of a uniform grid under the general model."""
+    _, steps, tests = predict_uniform(stats, res, k.t_setup, k.t_step, k.t_int, overlap="exact", terms=terms)
+    refs = expected_refs(stats, res, overlap="exact")
+    return steps, tests, refs, _memory_bytes(stats.n_triangles, res[0] * res[1] * res[2], refs, 1)
+
+
+def _memory_effect(k: Constants, steps, tests, memory_bytes, what: str, subgrids=0.0) -> dict:
+    """The memory effect's entry for a plan (``change``: the share of the predicted time its term
+    is).  The term is in every predicted time of a calibration with T_mem; the effect is *used*,
+    i.e. it moves the resolution, only when that share is more than EFFECT_TOLERANCE."""
+    total = k.cost(steps, tests, subgrids, memory_bytes)
+    lines = k.lines(steps, tests, memory_bytes)
+    share = k.t_mem * lines / total if total > 0 else 0.0
+    used = share > EFFECT_TOLERANCE
+    return dict(name="memory", used=bool(used), change=float(share), reason=(
+        f"the grid's {memory_bytes / 2 ** 20:.3g} MiB against the host's {k.cache_bytes / 2 ** 20:.3g} MiB cache: "
+        f"{lines:.3g} cache lines per ray from beyond it, {100 * share:.1f}% of the predicted time "
+        + (f"({what})" if used else f"(below the {100 * EFFECT_TOLERANCE:g}% tolerance: the resolution "
+                                      "ignores it)")))
+
+
 def analytic_uniform_plan(stats, k: Constants, mailbox):
     """Single-level plan of the general model with the effects :func:`models.effects.select_effects` keeps.
 
     Rays terminate at the first hit (the kernel's behaviour), exact overlap (the kernel's
-    default insertion).  Returns (plan, effects) like :func:`paper_plan`; plan also holds
-    ``terms`` (the selected :class:`models.general.Terms`).
+    default insertion).  With a calibration's T_mem, when the memory effect's term
+    (models/memory.py) is more than EFFECT_TOLERANCE of the predicted time at the optimum,
+    the resolution is the cheapest of MEMORY_SEARCH_SCALES around the memory-free optimum.
+    Returns (plan, effects) like :func:`paper_plan`; plan also holds ``terms`` (the selected
+    :class:`models.general.Terms`).
     """
     sel = select_effects(stats, k.t_setup, k.t_step, k.t_int, mailbox=mailbox, termination=True, overlap="exact",
                          levels=1)
     res = sel.resolution
-    _, steps, tests = predict_uniform(stats, res, k.t_setup, k.t_step, k.t_int, overlap="exact", terms=sel.terms)
-    refs = expected_refs(stats, res, overlap="exact")
+    steps, tests, refs, mem = _uniform_counts(stats, res, k, sel.terms)
+    effects = _effect_dicts(sel)
+    if k.has_memory:
+        cands = {}
+        for sc in MEMORY_SEARCH_SCALES:
+            r = _scaled(res, sc)
+            if r not in cands:
+                c = _uniform_counts(stats, r, k, sel.terms)
+                cands[r] = (k.cost(c[0], c[1], 0.0, c[3]), c)
+        best = min(cands, key=lambda r: cands[r][0])
+        eff = _memory_effect(k, *cands[best][1][:2], cands[best][1][3],
+                             f"resolution searched from 1/4x to 4x per axis of the memory-free optimum "
+                             f"{_fmt_res(res)}: {_fmt_res(best)}")
+        if eff["used"]:
+            res = best
+            steps, tests, refs, mem = cands[best][1]
+        effects.append(eff)
     plan = dict(levels=_level_dicts_uniform(stats, res, refs), steps=steps, tests=tests, subgrids=0.0,
-                memory_bytes=_memory_bytes(stats.n_triangles, res[0] * res[1] * res[2], refs, 1),
-                terms=sel.terms, selection=sel)
-    return plan, _effect_dicts(sel)
+                memory_bytes=mem, terms=sel.terms, selection=sel)
+    return plan, effects
 
 
 def _nested_plan(scene, stats, k: Constants, L):
@@ -433,7 +515,7 @@ def _nested_plan(scene, stats, k: Constants, L):
                 c = nested_counts(geom, stats.box_lo, stats.box_hi, _scaled(centre, scales[i]), L, k.ratio,
                                   overlap=overlap, corners=corners, leaves="analytic",
                                   overlap_test=triangle_box_overlap)
-                memo[i] = (k.cost(c.steps, c.tests, c.subgrids), c)
+                memo[i] = (k.cost(c.steps, c.tests, c.subgrids, _nested_memory_bytes(stats, c)), c)
             except TooManyPairs:
                 memo[i] = (math.inf, None)
         return memo[i][0]
@@ -457,6 +539,12 @@ def _nested_plan(scene, stats, k: Constants, L):
     return best, overlap, how
 
 
+def _nested_memory_bytes(stats, counts) -> int:
+    """Bytes of a nested structure from models.nested (as the kernel stores it)."""
+    nodes = sum(info.grids for info in counts.per_level)
+    return _memory_bytes(stats.n_triangles, counts.cells, counts.refs, nodes)
+
+
 def _nested_levels(counts, n_triangles):
     out = []
     for depth, info in enumerate(counts.per_level):
@@ -477,17 +565,18 @@ def _nested_levels(counts, n_triangles):
 def _analytic_nested(scene, stats, k: Constants, L, mailbox):
     counts, overlap, how = _nested_plan(scene, stats, k, L)
     frac, _ = termination_fraction(stats)
-    ns0 = k.cost(counts.steps, counts.tests, counts.subgrids)
+    ns0 = k.cost(counts.steps, counts.tests, counts.subgrids, _nested_memory_bytes(stats, counts))
     sel = select_effects(stats, k.t_setup, k.t_step, k.t_int, mailbox=mailbox, termination=True, overlap="exact",
                          levels=L, subgrid_ns=k.t_sub * counts.subgrids * frac,
                          clustering_change=clustering_change(counts, stats, k.t_step, k.t_int, ns0))
     f = sel.terms.traversed_fraction
-    nodes = sum(info.grids for info in counts.per_level)
     plan = dict(levels=_nested_levels(counts, stats.n_triangles), steps=f * counts.steps, tests=f * counts.tests,
-                subgrids=f * counts.subgrids, memory_bytes=_memory_bytes(stats.n_triangles, counts.cells,
-                                                                         counts.refs, nodes),
+                subgrids=f * counts.subgrids, memory_bytes=_nested_memory_bytes(stats, counts),
                 terms=sel.terms, counts=counts, overlap=overlap)
     effects = _effect_dicts(sel)
+    if k.has_memory:
+        effects.append(_memory_effect(k, plan["steps"], plan["tests"], plan["memory_bytes"],
+                                      "in the cost of every screened top resolution", plan["subgrids"]))
     effects.append(dict(name="nested-model", used=True, change=0.0,
                         reason=(f"{L}-level Crofton composition over the built structure ({how}); "
                                 f"termination scales its counts by {100 * f:.0f}%")))
@@ -504,7 +593,7 @@ def _deepen(k: Constants, uniform, nested, stops, how: str, min_gain: float | No
     if min_gain is None:
         min_gain = DEEPEN_MIN_GAIN if k.units == "ns" else DEEPEN_MIN_GAIN_RATIO_MODE
     best = uniform()
-    best_ns = k.cost(best[0]["steps"], best[0]["tests"])
+    best_ns = k.cost(best[0]["steps"], best[0]["tests"], 0.0, best[0].get("memory_bytes", 0.0))
     tried = [f"L=1: {best_ns:.4g}"]
     # the gain is relative to the whole cost of a ray, set-up included (unknown in ratio mode)
     setup = RATIO_MODE_T_SETUP_IN_T_STEP * k.t_step if k.units != "ns" else 0.0
@@ -514,7 +603,7 @@ def _deepen(k: Constants, uniform, nested, stops, how: str, min_gain: float | No
         except stops as exc:
             tried.append(f"L={L}: not modelled ({exc})")
             break
-        ns = k.cost(cand[0]["steps"], cand[0]["tests"], cand[0]["subgrids"])
+        ns = k.cost(cand[0]["steps"], cand[0]["tests"], cand[0]["subgrids"], cand[0].get("memory_bytes", 0.0))
         tried.append(f"L={L}: {ns:.4g}")
         if ns + setup >= (best_ns + setup) * (1.0 - min_gain):
             break
@@ -592,11 +681,20 @@ def _simulated_uniform(scene, stats, k: Constants, rays, mailbox):
     sc = np.array([r[0] for r in rows])
     st = np.array([r[2] for r in rows])
     te = np.array([r[3] for r in rows])
-    measured_cost = k.t_setup + k.t_step * st + k.t_int * te
+    def mem(scales):  # the grid's bytes at each scale (the model's references)
+        if not k.has_memory:
+            return np.zeros(len(scales))
+        return np.array([float(_uniform_counts(stats, _scaled(base, x), k, Terms(mailbox=mailbox))[3])
+                         for x in scales])
+
+    def cost_of(scales, steps_s, tests_s):
+        return np.array([k.cost(a_, b_, 0.0, m_) for a_, b_, m_ in zip(steps_s, tests_s, mem(scales))])
+
+    measured_cost = cost_of(sc, st, te)
     if len(rows) >= 3:  # enough distinct resolutions to fit the three test terms
         a, b = fit_count_curves(sc, st, te)
         grid_s = np.exp(np.linspace(np.log(sc.min()), np.log(sc.max()), SIM_SEARCH_POINTS))
-        cost = k.t_setup + k.t_step * (a[0] + a[1] * grid_s) + k.t_int * (b[0] + b[1] / grid_s + b[2] / grid_s ** 2)
+        cost = cost_of(grid_s, a[0] + a[1] * grid_s, b[0] + b[1] / grid_s + b[2] / grid_s ** 2)
         s_best = float(grid_s[int(np.argmin(cost))])
     else:  # tiny grids: rounding merges the scales; take the cheapest measured one
         a, b = np.full(2, np.nan), np.full(3, np.nan)
@@ -695,8 +793,8 @@ def _baseline_table(stats, k: Constants, terms):
         out[name] = _res_list(levels[0])
         d = dict(levels=[_res_list(x) for x in levels])
         if len(levels) == 1:
-            _, steps, tests = predict_uniform(stats, levels[0], 0.0, 1.0, 1.0, overlap="exact", terms=terms)
-            d.update(steps_per_ray=steps, tests_per_ray=tests, cost_per_ray=k.cost(steps, tests))
+            steps, tests, _, mem = _uniform_counts(stats, levels[0], k, terms)
+            d.update(steps_per_ray=steps, tests_per_ray=tests, cost_per_ray=k.cost(steps, tests, 0.0, mem))
         detail[name] = d
     return out, detail
 
@@ -749,9 +847,13 @@ def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analyt
         notes.append("camera rays: the paper and analytic models assume isotropic lines; use --fidelity simulated "
                      "to count camera rays")
     steps, tests, subgrids = float(plan["steps"]), float(plan["tests"]), float(plan["subgrids"])
-    cost = _interval(k.cost_samples(steps, tests, subgrids))
+    # the paper fidelity is the talk's model: no memory term
+    plan_bytes = float(plan["memory_bytes"]) if fidelity != "paper" else 0.0
+    cost = _interval(k.cost_samples(steps, tests, subgrids, plan_bytes))
     predicted = dict(ns_per_ray=cost if k.units == "ns" else None, steps_per_ray=steps, tests_per_ray=tests,
                      subgrids_per_ray=subgrids)
+    if k.has_memory and fidelity != "paper":
+        predicted["lines_per_ray"] = k.lines(steps, tests, plan_bytes)
     if k.units != "ns":
         predicted["cost_t_step"] = cost
     terms = plan.get("terms") or Terms(mailbox=mailbox)
@@ -764,17 +866,17 @@ def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analyt
     if len(plan["levels"]) == 1:
         _, m_steps, m_tests = predict_uniform(stats, plan["levels"][0]["resolution"], 0.0, 1.0, 1.0, overlap="exact",
                                               terms=terms)
-        predicted["model_cost_per_ray"] = k.cost(m_steps, m_tests)
+        predicted["model_cost_per_ray"] = k.cost(m_steps, m_tests, 0.0, plan_bytes)
     elif "counts" in plan:
         c, f = plan["counts"], terms.traversed_fraction
-        predicted["model_cost_per_ray"] = k.cost(f * c.steps, f * c.tests, f * c.subgrids)
+        predicted["model_cost_per_ray"] = k.cost(f * c.steps, f * c.tests, f * c.subgrids, plan_bytes)
     else:
         predicted["model_cost_per_ray"] = None
     base, base_detail = _baseline_table(stats, k, terms)
     out = dict(scene=scene.name, triangles=int(stats.n_triangles), scene_class=cls, scene_class_reason=cls_reason,
                fidelity=fidelity, units=k.units, rays=rays, mailbox=mailbox,
                constants=dict(t_setup=k.t_setup, t_step=k.t_step, t_int=k.t_int, t_sub=k.t_sub, ratio=k.ratio,
-                              fitted_on=k.fitted_on),
+                              fitted_on=k.fitted_on, t_mem=k.t_mem, cache_bytes=k.cache_bytes),
                levels=plan["levels"], memory_bytes=int(plan["memory_bytes"]), predicted=predicted,
                effects=effects, baselines=base, baselines_detail=base_detail, notes=notes)
     if "simulation" in plan:
@@ -886,10 +988,13 @@ def constants_from_args(args, rays: str | None = None) -> dict:
                         "pass --calibration FILE, or give your own ratio with --ratio R")
     k = load_calibration_constants(path, rays)
     s = k.samples
-    constants = {f"{n}_ns": getattr(k, n) for n in ("t_setup", "t_step", "t_int", "t_sub")}
+    names = ("t_setup", "t_step", "t_int", "t_sub", "t_mem")
+    constants = {f"{n}_ns": getattr(k, n) for n in names}
     if k.fitted_on:
         constants["fitted_on"] = k.fitted_on
-    return dict(samples={f"{n}_ns": s[n] for n in ("t_setup", "t_step", "t_int", "t_sub")}, constants=constants)
+    if k.cache_bytes is not None:
+        constants["cache_bytes"] = k.cache_bytes
+    return dict(samples={f"{n}_ns": s[n] for n in names}, constants=constants)
 
 
 

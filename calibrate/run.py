@@ -28,7 +28,8 @@ from . import calfile, suites
 from . import fit as _fit
 from ._io import UserError, atomic_write_text, check_writable
 from ._grid import intersector_code
-from .host import fingerprint
+from models.memory import lines_beyond_cache
+from .host import cache_bytes, fingerprint
 from .protocol import Measurement, MeasurementInterrupted, measure, pin_to_one_core
 
 #: Default wall-clock budget of a run, seconds.
@@ -138,10 +139,14 @@ def holdout_names(configs, seed: int) -> set:
     return set(np.array(ctx)[rng.choice(len(ctx), size=k, replace=False)].tolist())
 
 
-def records(configs, timings: dict, held: set) -> list:
+def records(configs, timings: dict, held: set, cache_bytes: int | None = None) -> list:
+    """JSON records of the configurations with their values; with ``cache_bytes``, an
+    in-context record also carries ``misses``, the memory effect's count (models/memory.py)."""
     out = []
     for c in configs:
         rec = c.record()
+        if cache_bytes is not None and c.kind == "in_context":
+            rec["misses"] = float(lines_beyond_cache(c.steps, c.tests, c.memory_bytes, cache_bytes))
         m = timings.get(c.name)
         rec["values_ns"] = list(m.values_ns) if m else []
         rec["loops"] = int(m.loops) if m else 0
@@ -162,7 +167,7 @@ def _priors(isolated):
 
 def _fit_stage(recs, seed, isolated):
     design = calfile.design_from_measurements(recs, "in_context")
-    return _fit.fit(design, seed=seed, priors=_priors(isolated))
+    return calfile.fit_in_context(design, seed=seed, priors=_priors(isolated))
 
 
 def _holdout(result, by_rays, recs):
@@ -289,6 +294,7 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
     deadline = t_start + budget_s
     warnings: list = []
 
+    cache, cache_source = cache_bytes()
     with pin_to_one_core() as pin:
         status("building grids and counting work with the instrumented twin")
         configs = suites.isolated_configs(intersector, seed) + suites.context_configs(intersector, seed)
@@ -310,7 +316,7 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
                 _save_partial(part, seed, intersector, configs, timings)
                 raise
             _save_partial(part, seed, intersector, configs, timings)
-            recs = records(configs, timings, held)
+            recs = records(configs, timings, held, cache)
             status("fitting")
             isolated, iso_warning = _isolated_fit(recs, seed)
             try:
@@ -367,7 +373,10 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
                     holdout_fraction=HOLDOUT_FRACTION, holdout_mare=mare, holdout_mare_pooled=mare_pooled,
                     holdout_mare_by_rays=mare_by_rays,
                     ratio_rel_width=_rel_width(result), pinned_core=pin.core, pin_note=pin.note,
-                    rays_per_batch=suites.RAYS_PER_BATCH, min_value_ns=MIN_VALUE_NS)
+                    rays_per_batch=suites.RAYS_PER_BATCH, min_value_ns=MIN_VALUE_NS,
+                    cache_bytes=cache, cache_source=cache_source)
+        if "t_mem_skipped" in result.diagnostics:
+            warnings.append(result.diagnostics["t_mem_skipped"])
         if skipped:
             meta["by_rays_skipped"] = skipped
         from ._kernels import CFLAGS

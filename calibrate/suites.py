@@ -75,13 +75,14 @@ class Config:
     subgrids: int
     run: Callable = field(repr=False)
     ray_set: str = ""
+    memory_bytes: int = 0
 
     def record(self) -> dict:
         """The JSON record of this configuration (without timings)."""
         return dict(name=self.name, kind=self.kind, suite=self.suite, scene=self.scene,
                     resolution=self.resolution, intersector=self.intersector, ray_set=self.ray_set,
                     rays=int(self.rays), steps=int(self.steps), tests=int(self.tests),
-                    subgrids=int(self.subgrids))
+                    subgrids=int(self.subgrids), memory_bytes=int(self.memory_bytes))
 
 
 def _res_label(res) -> str:
@@ -93,7 +94,8 @@ def _config(name, kind, suite, scene_name, res_label, intersector, grid: Grid, o
     return Config(name=name, kind=kind, suite=suite, scene=scene_name, resolution=res_label,
                   intersector=intersector, rays=int(o.shape[0]), steps=int(steps.sum(dtype=np.int64)),
                   tests=int(tests.sum(dtype=np.int64)), subgrids=int(subgrids.sum(dtype=np.int64)),
-                  run=grid.timed_batch(o, d, clock=TIMING_CLOCK), ray_set=ray_set)
+                  run=grid.timed_batch(o, d, clock=TIMING_CLOCK), ray_set=ray_set,
+                  memory_bytes=int(grid.info["memory_bytes"]))
 
 
 def isolated_configs(intersector: str, seed: int = 0) -> list[Config]:

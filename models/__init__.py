@@ -13,6 +13,7 @@ from .closed_forms import (cells_to_resolution, empirical_cells, l_level_cells, 
                            two_level_lines, two_level_points)
 from .effects import EFFECT_TOLERANCE, select_effects, termination_fraction
 from .general import Terms, optimal_cell_size, optimal_uniform, predict_uniform, steps_per_ray
+from .memory import lines_beyond_cache, miss_fraction
 from .nested import choose_levels, nested_counts, optimal_nested
 from .portable import general_resolution, paper_resolutions, resolution_for_cells
 from .stats import SceneStats, grid_box, scene_class, scene_stats, triangle_geometry
@@ -31,6 +32,8 @@ __all__ = [
     # the general model
     "Terms", "steps_per_ray", "predict_uniform", "optimal_cell_size", "optimal_uniform",
     "nested_counts", "optimal_nested", "choose_levels",
+    # the memory effect
+    "miss_fraction", "lines_beyond_cache",
     # effects and uncertainty
     "EFFECT_TOLERANCE", "select_effects", "termination_fraction", "posterior_optimum", "posterior_ns",
 ]

@@ -47,6 +47,9 @@ from calibrate import Grid, Scene, calfile  # noqa: E402
 from calibrate import _grid as _grid_module  # noqa: E402
 from calibrate.cli import build_parser, main  # noqa: E402
 
+#: The sample columns of a four-constant calibration (no memory term).
+FOUR_CONSTANT_COLUMNS = ["t_setup_ns", "t_step_ns", "t_int_ns", "t_sub_ns", "extra_scatter"]
+
 DOCS = REPO / "docs" / "bad-input.md"
 ERROR_PREFIX = "calibrate: error: "
 EXIT_USER_ERROR = 2
@@ -95,7 +98,7 @@ def _calibration() -> dict:
                  steps=1024 * m, tests=1024 * 3 * m, subgrids=0, values_ns=[1024 * (40 + 3 * m + 22.5 * m)] * 3)
             for m in (4, 8, 16, 32)]
     return calfile.validate(dict(schema_version=calfile.SCHEMA_VERSION, fingerprint=dict(cpu_model="Test CPU"),
-                                 constants=consts, samples=dict(columns=list(calfile.SAMPLE_COLUMNS),
+                                 constants=consts, samples=dict(columns=FOUR_CONSTANT_COLUMNS,
                                                                 values=[row, row]),
                                  diagnostics=dict(converged=True), measurements=meas, meta={}))
 

@@ -27,6 +27,9 @@ from models.general import optimal_cell_size
 from models.nested import MAX_LEVELS
 from models.stats import grid_box, scene_class
 
+#: The sample columns of a four-constant calibration (no memory term).
+FOUR_CONSTANT_COLUMNS = ["t_setup_ns", "t_step_ns", "t_int_ns", "t_sub_ns", "extra_scatter"]
+
 GCC = shutil.which("gcc")
 GXX = shutil.which("g++")
 needs_gcc = pytest.mark.skipif(GCC is None, reason="gcc is not installed: the header's C99 checks need it")
@@ -57,7 +60,7 @@ def make_calibration(cpu="Test CPU @ 3.0GHz", **fp) -> dict:
                fingerprint=dict(cpu_model=cpu, date_utc="2026-11-22T06:00:00+00:00",
                                 kernel_build="gcc 12; -std=c99 -O2 -ffp-contract=off -fno-fast-math", **fp),
                constants=consts,
-               samples=dict(columns=list(calfile.SAMPLE_COLUMNS), values=[row, row]),
+               samples=dict(columns=FOUR_CONSTANT_COLUMNS, values=[row, row]),
                diagnostics=dict(converged=True), measurements=[], meta={})
     return calfile.validate(cal)
 

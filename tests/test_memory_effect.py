@@ -1,0 +1,272 @@
+"""The memory effect (models/memory.py): T_mem per cache line fetched from beyond the cache.
+
+A grid larger than the host's cache makes its steps and tests fetch lines from
+further out; ``calibrate run`` records each batch's grid bytes and its expected
+lines from beyond the cache (``misses``), the fit adds ``T_mem`` for them, and
+predictions add ``T_mem * lines`` per ray.  These tests plant T_mem in
+synthetic timings and check that the fit recovers it, that the calibration file
+keeps and checks it, that a design which cannot tell it apart falls back to the
+four constants and says why, and that predict moves the resolution only when
+the effect matters.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+
+import numpy as np
+import pytest
+
+from calibrate import calfile, host
+from calibrate.export import export
+from calibrate._grid import Scene
+from calibrate.predict import _uniform_counts, predict, resolve_constants, scene_statistics
+from models.effects import select_effects
+from models.memory import LINE_BYTES, STEP_LINES, TEST_LINES, lines_beyond_cache, miss_fraction
+
+RAYS = 2048
+CACHE = 2 << 20
+# Constants of the same order as a measured host's isotropic fit (docs/calibration.md), ns.
+TRUTH = {"t_setup_ns": 80.0, "t_step_ns": 11.5, "t_int_ns": 1.9, "t_sub_ns": 70.0, "t_mem_ns": 2.8}
+PRIORS = {"t_setup_ns": (70.0, 0.3), "t_sub_ns": (60.0, 0.7)}
+NOISE_REL = 0.02
+N_CONFIGS = 40
+N_REPEATS = 5
+
+
+# -- the model ---------------------------------------------------------------------------
+
+def test_miss_fraction_is_zero_while_the_grid_fits_and_one_minus_c_over_f_beyond():
+    f = np.array([0.0, 1.0, CACHE / 2, CACHE, 2.0 * CACHE, 8.0 * CACHE, 1e15])
+    got = miss_fraction(f, CACHE)
+    want = np.where(f > CACHE, 1.0 - CACHE / np.maximum(f, 1.0), 0.0)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-15)
+    assert got[4] == pytest.approx(0.5) and got[5] == pytest.approx(7 / 8)
+    assert np.all(np.diff(got) >= 0) and np.all(got < 1.0)
+    np.testing.assert_array_equal(miss_fraction(f, None), np.zeros_like(f))
+
+
+@pytest.mark.parametrize("cache, memory", [(0, 1.0), (-1, 1.0), (float("nan"), 1.0), (CACHE, -1.0),
+                                           (CACHE, float("inf"))])
+def test_miss_fraction_rejects_bad_sizes(cache, memory):
+    with pytest.raises(ValueError):
+        miss_fraction(memory, cache)
+
+
+def test_lines_count_one_line_a_step_and_a_triangle_copy_a_test():
+    assert STEP_LINES == 1.0 and TEST_LINES == 72.0 / LINE_BYTES
+    f = 4.0 * CACHE  # three quarters of the grid is beyond the cache
+    assert lines_beyond_cache(10, 8, f, CACHE) == pytest.approx(0.75 * (10 + 8 * 72 / 64))
+    # linear: batch totals are rays times per-ray values
+    per_ray = lines_beyond_cache(10, 8, f, CACHE)
+    assert lines_beyond_cache(RAYS * 10, RAYS * 8, f, CACHE) == pytest.approx(RAYS * per_ray)
+    assert lines_beyond_cache(10, 8, CACHE, CACHE) == 0.0
+
+
+# -- the host's cache ------------------------------------------------------------------------
+
+def _cache_dir(tmp_path, entries):
+    for i, (level, kind, size) in enumerate(entries):
+        d = tmp_path / f"index{i}"
+        d.mkdir()
+        (d / "level").write_text(f"{level}\n")
+        (d / "type").write_text(f"{kind}\n")
+        (d / "size").write_text(f"{size}\n")
+    return tmp_path
+
+
+@pytest.mark.parametrize("entries, want", [
+    ([(1, "Data", "48K"), (1, "Instruction", "64K"), (2, "Unified", "2048K"), (3, "Unified", "491520K")], 2 << 20),
+    ([(1, "Data", "32K"), (2, "Unified", "1M")], 1 << 20),
+    ([(2, "Instruction", "4M"), (2, "Data", "512K")], 512 << 10),
+])
+def test_cache_bytes_reads_the_level_two_data_or_unified_cache(tmp_path, entries, want):
+    size, source = host.cache_bytes(cache_dir=_cache_dir(tmp_path, entries))
+    assert size == want and source.endswith("size")
+
+
+@pytest.mark.parametrize("entries", [[], [(1, "Data", "48K")], [(2, "Unified", "lots")], [(2, "Unified", "0K")]])
+def test_cache_bytes_is_assumed_when_the_system_does_not_say(tmp_path, entries):
+    size, source = host.cache_bytes(cache_dir=_cache_dir(tmp_path, entries))
+    assert (size, source) == (host.DEFAULT_CACHE_BYTES, "assumed")
+    assert host.cache_bytes(cache_dir=tmp_path / "absent") == (host.DEFAULT_CACHE_BYTES, "assumed")
+
+
+def test_the_fingerprint_records_the_cache():
+    fp = host.fingerprint()
+    assert isinstance(fp["cache_bytes"], int) and fp["cache_bytes"] > 0 and fp["cache_source"]
+
+
+# -- the fit ------------------------------------------------------------------------------------
+
+def _records(seed: int, truth=TRUTH, memory_scale=1.0) -> list[dict]:
+    """In-context records over grids from 0.1 to 40 MB, values from ``truth`` with 2% noise."""
+    rng = np.random.default_rng(seed)
+    recs = []
+    for j in range(N_CONFIGS):
+        steps_pr = np.exp(rng.uniform(np.log(1.0), np.log(60.0)))
+        tests_pr = np.exp(rng.uniform(np.log(3.0), np.log(100.0)))
+        sub_pr = rng.uniform(1.0, 13.0) if j % 4 == 0 else 0.0
+        memory = int(memory_scale * np.exp(rng.uniform(np.log(1e5), np.log(4e7))))
+        counts = dict(steps=int(RAYS * steps_pr), tests=int(RAYS * tests_pr), subgrids=int(RAYS * sub_pr))
+        misses = float(lines_beyond_cache(counts["steps"], counts["tests"], memory, CACHE))
+        mu = (RAYS * truth["t_setup_ns"] + counts["steps"] * truth["t_step_ns"] + counts["tests"] * truth["t_int_ns"]
+              + counts["subgrids"] * truth["t_sub_ns"] + misses * truth["t_mem_ns"])
+        recs.append(dict(kind="in_context", scene=f"scene{j % 5}", resolution=[j + 1] * 3, intersector="watertight",
+                         name=f"scene{j % 5} #{j}", ray_set="isotropic", rays=RAYS, **counts, memory_bytes=memory,
+                         misses=misses, held_back=False, warnings=[],
+                         values_ns=[float(v) for v in mu * np.exp(NOISE_REL * rng.standard_normal(N_REPEATS))]))
+    return recs
+
+
+@pytest.fixture(scope="module")
+def planted():
+    recs = _records(0)
+    result = calfile.fit_in_context(calfile.design_from_measurements(recs, "in_context"), seed=0, priors=PRIORS)
+    cal = calfile.from_fit(result, fingerprint={"cpu_model": "Test CPU", "cache_bytes": CACHE}, measurements=recs,
+                           meta={"cache_bytes": CACHE})
+    return recs, result, cal
+
+
+def test_the_fit_recovers_a_planted_t_mem(planted):
+    _, result, _ = planted
+    assert "t_mem_ns" in result.names and "t_mem_skipped" not in result.diagnostics
+    for name in ("t_step_ns", "t_int_ns", "t_mem_ns"):
+        c = result.constants[name]
+        assert c["median"] == pytest.approx(TRUTH[name], rel=0.05), name
+        assert c["ci95"][0] <= TRUTH[name] <= c["ci95"][1], name
+
+
+def test_without_the_memory_term_the_same_timings_fit_worse(planted):
+    recs, result, _ = planted
+    design = calfile.design_from_measurements(recs, "in_context")
+    del design["misses"]
+    four = calfile.fit_in_context(design, seed=0, priors=PRIORS)
+    tau = lambda r: r.diagnostics["extra_scatter"]["median"]  # noqa: E731
+    assert tau(four) > 3 * tau(result)
+
+
+def test_a_design_that_cannot_tell_t_mem_apart_falls_back_and_says_why():
+    # every grid but one fits the cache: T_mem shows in one batch by a hair
+    recs = _records(1, memory_scale=1e-3)
+    recs[0]["memory_bytes"] = CACHE + 1
+    recs[0]["misses"] = float(lines_beyond_cache(recs[0]["steps"], recs[0]["tests"], CACHE + 1, CACHE))
+    result = calfile.fit_in_context(calfile.design_from_measurements(recs, "in_context"), seed=0, priors=PRIORS)
+    assert "t_mem_ns" not in result.names
+    assert "T_mem not fitted" in result.diagnostics["t_mem_skipped"]
+    assert result.constants["t_int_ns"]["median"] == pytest.approx(TRUTH["t_int_ns"], rel=0.05)
+
+
+def test_records_without_misses_fit_four_constants():
+    recs = _records(2)
+    for r in recs[:3]:
+        del r["misses"]
+    design = calfile.design_from_measurements(recs, "in_context")
+    assert "misses" not in design
+
+
+# -- the file -------------------------------------------------------------------------------------
+
+def test_t_mem_round_trips(planted, tmp_path):
+    _, result, cal = planted
+    path = tmp_path / "cal.json"
+    calfile.save(path, cal)
+    back = calfile.load(path)
+    assert back["constants"]["t_mem_ns"]["median"] == pytest.approx(result.constants["t_mem_ns"]["median"])
+    assert "t_mem_ns" in back["samples"]["columns"] and calfile.cache_bytes_of(back) == CACHE
+    again = calfile.refit(back, seed=0)
+    assert again["constants"]["t_mem_ns"]["median"] == pytest.approx(TRUTH["t_mem_ns"], rel=0.05)
+
+
+def _mutated(cal, fn):
+    bad = json.loads(json.dumps(cal))
+    fn(bad)
+    return bad
+
+
+@pytest.mark.parametrize("label, mutate, message", [
+    ("no cache size", lambda c: (c["meta"].pop("cache_bytes"), c["fingerprint"].pop("cache_bytes")),
+     "meta.cache_bytes: missing"),
+    ("cache size zero", lambda c: c["meta"].__setitem__("cache_bytes", 0), "meta.cache_bytes: must be a whole"),
+    ("fractional grid bytes", lambda c: c["measurements"][0].__setitem__("memory_bytes", 1.5),
+     "measurements[0].memory_bytes"),
+    ("negative misses", lambda c: c["measurements"][1].__setitem__("misses", -3.0), "measurements[1].misses"),
+    ("t_mem without its samples", lambda c: (c["samples"]["columns"].remove("t_mem_ns"),
+                                             [row.pop(c["samples"]["columns"].index("t_int_ns") + 2)
+                                              for row in c["samples"]["values"]]),
+     "missing column 't_mem_ns'"),
+])
+def test_bad_memory_fields_are_rejected(planted, label, mutate, message):
+    _, _, cal = planted
+    with pytest.raises(ValueError, match=message.replace("[", r"\[").replace("]", r"\]")):
+        calfile.validate(_mutated(cal, mutate))
+
+
+# -- predictions -----------------------------------------------------------------------------------
+
+def _constants(t_mem, cache):
+    c = {k: v for k, v in TRUTH.items() if k != "t_mem_ns"}
+    return dict(c, t_mem_ns=t_mem, cache_bytes=cache)
+
+
+def _effect(result, name):
+    return next(e for e in result["effects"] if e["name"] == name)
+
+
+def _cost_at(res, t_mem, cache):
+    k = resolve_constants(constants=_constants(t_mem, cache))
+    stats = scene_statistics(Scene.builtin("sphere"))
+    terms = select_effects(stats, k.t_setup, k.t_step, k.t_int, termination=True, overlap="exact", levels=1).terms
+    steps, tests, _, mem = _uniform_counts(stats, tuple(res), k, terms)
+    return k.cost(steps, tests, 0.0, mem)
+
+
+@pytest.mark.parametrize("t_mem, cache", [(40.0, 4096), (6.0, 3 << 20), (20.0, 1 << 20)])
+def test_a_grid_beyond_the_cache_gets_the_resolution_cheapest_with_the_memory_term(t_mem, cache):
+    plain = predict("sphere", constants=_constants(0.0, None), levels="1")
+    costly = predict("sphere", constants=_constants(t_mem, cache), levels="1")
+    assert not any(e["name"] == "memory" for e in plain["effects"])
+    mem = _effect(costly, "memory")
+    assert mem["used"] and mem["change"] > 0.02
+    res, res0 = costly["levels"][0]["resolution"], plain["levels"][0]["resolution"]
+    assert res != res0
+    best = _cost_at(res, t_mem, cache)
+    assert best < _cost_at(res0, t_mem, cache)
+    for f in (0.9, 1.1):  # no cheaper neighbour (the search's step is 2^(1/8) per axis)
+        assert best <= _cost_at([max(1, round(x * f)) for x in res], t_mem, cache) * (1 + 1e-12)
+    # the predicted time carries T_mem times the lines per ray
+    p = costly["predicted"]
+    assert p["lines_per_ray"] > 0
+    base = (TRUTH["t_setup_ns"] + TRUTH["t_step_ns"] * p["steps_per_ray"] + TRUTH["t_int_ns"] * p["tests_per_ray"])
+    assert p["ns_per_ray"]["median"] == pytest.approx(base + t_mem * p["lines_per_ray"], rel=1e-9)
+
+
+def test_a_grid_that_fits_the_cache_leaves_the_resolution_alone():
+    plain = predict("sphere", constants=_constants(0.0, None), levels="1")
+    roomy = predict("sphere", constants=_constants(40.0, 1 << 40), levels="1")
+    mem = _effect(roomy, "memory")
+    assert not mem["used"] and mem["change"] == 0.0 and "tolerance" in mem["reason"]
+    assert roomy["levels"][0]["resolution"] == plain["levels"][0]["resolution"]
+    assert roomy["predicted"]["ns_per_ray"]["median"] == pytest.approx(plain["predicted"]["ns_per_ray"]["median"])
+
+
+def test_t_mem_without_a_cache_size_is_an_error():
+    with pytest.raises(ValueError, match="cache"):
+        predict("sphere", constants=_constants(3.0, None), levels="1")
+
+
+def test_the_header_carries_t_mem_and_the_cache(planted, tmp_path):
+    _, _, cal = planted
+    path = tmp_path / "cal.json"
+    calfile.save(path, cal)
+    header = tmp_path / "grid_tuning.h"
+    export(header, calibration=path, rays=None)
+    text = header.read_text()
+    assert "#define GRIDCAL_T_MEM_NS" in text and f"#define GRIDCAL_CACHE_BYTES {CACHE}.0" in text
+    prog = tmp_path / "use.c"
+    prog.write_text('#include "grid_tuning.h"\nint main(void) { return GRIDCAL_T_MEM_NS > 0.0 && '
+                    'GRIDCAL_CACHE_BYTES > 0.0 ? 0 : 1; }\n')
+    subprocess.run(["cc", "-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", f"-I{tmp_path}", str(prog),
+                    "-o", str(tmp_path / "use"), "-lm"], check=True)
+    assert subprocess.run([str(tmp_path / "use")]).returncode == 0
