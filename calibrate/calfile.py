@@ -558,21 +558,36 @@ def design_from_measurements(
     return design
 
 
+#: Least rise of the maximum log posterior for which the memory term is fitted: half the
+#: 5% point of chi-square with one degree of freedom (3.84 / 2), a likelihood-ratio test.
+MEMORY_MIN_GAIN = 1.92
+
+
 def fit_in_context(design: Mapping, **fit_kwargs) -> _fit.FitResult:
     """:func:`calibrate.fit.fit` with the memory term when the design carries ``misses``.
 
-    When T_mem cannot be fitted (no batch fetches enough from beyond the cache for
-    the design to tell T_mem from the other terms, or the fit does not converge
-    with it), the design is fitted without it, and ``diagnostics.t_mem_skipped``
-    says why.  An error of the fit without it is raised as is.
+    The term is fitted when the timings call for it: when adding T_mem raises the maximum
+    log posterior by at least MEMORY_MIN_GAIN (the timings reject T_mem = 0 at the 5%
+    level).  Otherwise, or when the fit with it fails (e.g. its interval reaches towards
+    0), the design is fitted without it, and ``diagnostics.t_mem_skipped`` says why.  An
+    error of the fit without it is raised as is.
     """
+    misses = design.get("misses")
+    if misses is None or not np.any(np.asarray(misses) > 0):
+        return _fit.fit({k: v for k, v in design.items() if k != "misses"}, **fit_kwargs)
+    short = {k: v for k, v in fit_kwargs.items() if k in ("seed", "required", "priors")}
     try:
-        return _fit.fit(design, **fit_kwargs)
-    except (ValueError, _fit.ConvergenceError) as exc:
-        misses = design.get("misses")
-        if misses is None or not np.any(np.asarray(misses) > 0):
-            raise
-        why = str(exc)
+        gain = _fit.log_posterior_gain(design, "misses", **short)
+    except ValueError as exc:
+        gain, why = -math.inf, str(exc)
+    else:
+        why = (f"adding it raises the maximum log posterior by {gain:.3g}, below {MEMORY_MIN_GAIN:g} "
+               "(the timings do not reject T_mem = 0 at the 5% level)")
+    if gain >= MEMORY_MIN_GAIN:
+        try:
+            return _fit.fit(design, fail_fast=("t_mem_ns",), **fit_kwargs)
+        except (ValueError, _fit.ConvergenceError) as exc:
+            why = str(exc)
     result = _fit.fit({k: v for k, v in design.items() if k != "misses"}, **fit_kwargs)
     result.diagnostics["t_mem_skipped"] = f"T_mem not fitted, the memory effect is left out: {why}"
     return result

@@ -75,6 +75,7 @@ __all__ = [
     "FitResult",
     "fit",
     "holdout_error",
+    "log_posterior_gain",
     "predict_batch_times",
     "prepare_design",
     "split_design",
@@ -603,11 +604,13 @@ def _check_identified(theta: np.ndarray, post: _LogPosterior, prep: PreparedDesi
             )
 
 
-def _check_width(samples: np.ndarray, prep: PreparedDesign) -> None:
-    """Raise ValueError for a constant whose 95% interval spans too many decades."""
+def _check_width(samples: np.ndarray, prep: PreparedDesign, names: Sequence[str] | None = None) -> None:
+    """Raise ValueError for a constant whose 95% interval spans too many decades.
+
+    samples : (S, P) of the constants ``names`` (default: all of ``prep.names``)."""
     lo, hi = np.percentile(samples, CI95_PERCENT, axis=0)
     decades = np.log10(hi / lo)
-    for p, name in enumerate(prep.names):
+    for p, name in enumerate(prep.names if names is None else names):
         if decades[p] > MAX_CI95_DECADES:
             label = CONSTANT_LABELS[name]
             raise ValueError(
@@ -624,9 +627,16 @@ def _check_width(samples: np.ndarray, prep: PreparedDesign) -> None:
 
 
 def _sample(
-    post: _LogPosterior, theta0: np.ndarray, seed: int, max_steps: int, n_walkers: int, autocorr_tol: float
+    post: _LogPosterior, theta0: np.ndarray, seed: int, max_steps: int, n_walkers: int, autocorr_tol: float,
+    prep: PreparedDesign | None = None, fail_fast: Sequence[int] = (),
 ):
-    """Run emcee from a ball around theta0 until converged; returns (chain, info)."""
+    """Run emcee from a ball around theta0 until converged; returns (chain, info).
+
+    fail_fast : parameter indices checked after every chunk: when the second half of the
+    chain so far already gives one a 95% interval wider than MAX_CI95_DECADES, sampling
+    stops with :func:`_check_width`'s ValueError instead of running on to a result that
+    would be rejected.
+    """
     n_dim = theta0.size
     rng = np.random.default_rng(seed)
     lower = np.append(post.lo, 0.0)
@@ -647,6 +657,9 @@ def _sample(
     while True:
         state = sampler.run_mcmc(state, chunk, progress=False)
         n_steps += chunk
+        if fail_fast:
+            half = np.exp(sampler.get_chain(discard=n_steps // 2, flat=True)[:, list(fail_fast)])
+            _check_width(half, prep, names=[prep.names[p] for p in fail_fast])
         acceptance = float(np.mean(sampler.acceptance_fraction))
         tau_all = sampler.get_autocorr_time(tol=0)
         burn = int(math.ceil(BURN_IN_TAU * np.max(tau_all)))
@@ -730,6 +743,7 @@ def fit(
     autocorr_tol: float = AUTOCORR_TOL,
     required: Sequence[str] = REQUIRED_COUNT_KEYS,
     priors: Mapping | None = None,
+    fail_fast: Sequence[str] = (),
 ) -> FitResult:
     """Fit T_setup, T_step, T_int (and T_sub) to batch timings.
 
@@ -746,6 +760,8 @@ def fit(
     priors : optional ``{name: (median_ns, sigma_log)}``: a log-normal prior on
         that constant (e.g. from an isolating microbenchmark), for a term that
         is too small a part of every batch to be identified by the batches alone.
+    fail_fast : constants (e.g. an optional term) whose 95% interval is checked while
+        sampling: one already too wide ends the fit early with the same ValueError.
 
     Returns a :class:`FitResult`. Raises ValueError for malformed or ill-posed
     designs (naming the problem) and ConvergenceError when the posterior does
@@ -767,7 +783,8 @@ def fit(
     theta = _maximise(post, prep, seed)
     _check_identified(theta, post, prep)
     try:
-        chain, info = _sample(post, theta, seed, int(max_steps), int(n_walkers), float(autocorr_tol))
+        chain, info = _sample(post, theta, seed, int(max_steps), int(n_walkers), float(autocorr_tol), prep,
+                              [p for p, name in enumerate(prep.names) if name in fail_fast])
     except ConvergenceError as exc:
         exc.args = (exc.args[0] + _condition_hint(prep),)
         raise
@@ -805,6 +822,26 @@ def fit(
     )
     result.diagnostics = info
     return result
+
+
+def log_posterior_gain(design: Mapping, column: str, seed: int = 0, *,
+                       required: Sequence[str] = REQUIRED_COUNT_KEYS, priors: Mapping | None = None) -> float:
+    """How much a count column's term raises the maximum of the log posterior.
+
+    The maximum with ``column`` in the design minus the maximum without it (the same
+    nlopt search as :func:`fit`, no sampling).  Twice the gain is the likelihood-ratio
+    statistic of the term (its prior adds nothing: log-uniform over a box), so a gain
+    below 1.92 means the timings do not reject the term's absence at the 5% level
+    (chi-square with one degree of freedom).
+    """
+    if column not in design:
+        raise ValueError(f"design has no column {column!r}")
+    values = []
+    for d in (design, {k: v for k, v in design.items() if k != column}):
+        prep = prepare_design(d, required)
+        post = _LogPosterior(prep, priors)
+        values.append(post.value_and_grad(_maximise(post, prep, seed))[0])
+    return float(values[0] - values[1])
 
 
 def predict_batch_times(samples: np.ndarray, names: Sequence[str], design: Mapping) -> np.ndarray:

@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 from calibrate import calfile, host
+from calibrate import fit as F
 from calibrate.export import export
 from calibrate._grid import Scene
 from calibrate.predict import _uniform_counts, predict, resolve_constants, scene_statistics
@@ -156,6 +157,25 @@ def test_a_design_that_cannot_tell_t_mem_apart_falls_back_and_says_why():
     assert "t_mem_ns" not in result.names
     assert "T_mem not fitted" in result.diagnostics["t_mem_skipped"]
     assert result.constants["t_int_ns"]["median"] == pytest.approx(TRUTH["t_int_ns"], rel=0.05)
+
+
+@pytest.mark.parametrize("i", range(3))
+def test_the_likelihood_ratio_gate_sees_a_planted_t_mem_and_not_an_absent_one(i):
+    with_mem = calfile.design_from_measurements(_records(10 + i), "in_context")
+    without = calfile.design_from_measurements(_records(10 + i, truth=dict(TRUTH, t_mem_ns=0.0)), "in_context")
+    g_with = F.log_posterior_gain(with_mem, "misses", seed=i, priors=PRIORS)
+    g_without = F.log_posterior_gain(without, "misses", seed=i, priors=PRIORS)
+    assert g_with > 20 * calfile.MEMORY_MIN_GAIN
+    assert g_without < calfile.MEMORY_MIN_GAIN < g_with
+
+
+def test_fail_fast_stops_a_fit_whose_optional_term_is_not_identified():
+    recs = _records(3, truth=dict(TRUTH, t_mem_ns=0.0))
+    design = calfile.design_from_measurements(recs, "in_context")
+    with pytest.raises(ValueError, match="T_mem is not identified"):
+        F.fit(design, seed=0, priors=PRIORS, fail_fast=("t_mem_ns",))
+    result = calfile.fit_in_context(design, seed=0, priors=PRIORS)
+    assert "t_mem_ns" not in result.names and "T_mem not fitted" in result.diagnostics["t_mem_skipped"]
 
 
 def test_records_without_misses_fit_four_constants():
