@@ -49,7 +49,7 @@ from models.memory import lines_beyond_cache
 from models.nested import MAX_LEVELS, TooManyPairs, clustering_change, nested_counts
 from models.portable import paper_k, paper_level_cells
 from models.stats import scene_class, triangle_geometry
-from models.uncertainty import posterior_optimum, summarise
+from models.uncertainty import discrete_posterior_optimum, posterior_optimum, summarise
 
 from ._grid import Grid, Scene, triangle_box_overlap
 from ._io import UserError
@@ -482,13 +482,18 @@ def analytic_uniform_plan(stats, k: Constants, mailbox):
                 c = _uniform_counts(stats, r, k, sel.terms)
                 cands[r] = (k.cost(c[0], c[1], 0.0, c[3]), c)
         best = min(cands, key=lambda r: cands[r][0])
+        plan_cands = cands
         eff = _memory_effect(k, *cands[best][1][:2], cands[best][1][3],
                              f"resolution searched from 1/4x to 4x per axis of the memory-free optimum "
                              f"{_fmt_res(res)}: {_fmt_res(best)}")
+        effects.append(eff)
         if eff["used"]:
             res = best
             steps, tests, refs, mem = cands[best][1]
-        effects.append(eff)
+            plan = dict(levels=_level_dicts_uniform(stats, res, refs), steps=steps, tests=tests, subgrids=0.0,
+                        memory_bytes=mem, terms=sel.terms, selection=sel,
+                        memory_candidates=[(r, c[1]) for r, c in plan_cands.items()])
+            return plan, effects
     plan = dict(levels=_level_dicts_uniform(stats, res, refs), steps=steps, tests=tests, subgrids=0.0,
                 memory_bytes=mem, terms=sel.terms, selection=sel)
     return plan, effects
@@ -857,7 +862,20 @@ def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analyt
     if k.units != "ns":
         predicted["cost_t_step"] = cost
     terms = plan.get("terms") or Terms(mailbox=mailbox)
-    if fidelity == "analytic" and len(plan["levels"]) == 1 and k.samples["t_step"].size > 1:
+    if fidelity == "analytic" and "memory_candidates" in plan and k.samples["t_step"].size > 1:
+        # the memory term has no closed-form optimum: each posterior sample picks among the
+        # searched candidates
+        res_c = [r for r, _ in plan["memory_candidates"]]
+        cnt = np.array([c for _, c in plan["memory_candidates"]], dtype=np.float64)  # steps, tests, refs, bytes
+        sm = k.samples
+        lines = np.array([k.lines(c[0], c[1], c[3]) for c in cnt])
+        costs = (sm["t_setup"][:, None] + sm["t_step"][:, None] * cnt[:, 0] + sm["t_int"][:, None] * cnt[:, 1]
+                 + sm["t_mem"][:, None] * lines)
+        med = np.array([k.cost(c[0], c[1], 0.0, c[3]) for c in cnt])
+        (i_lo, i_hi), pen = discrete_posterior_optimum(costs, med, [r[0] * r[1] * r[2] for r in res_c])
+        predicted["resolution_ci95"] = [_res_list(res_c[i_lo]), _res_list(res_c[i_hi])]
+        predicted["uncertainty_penalty"] = pen
+    elif fidelity == "analytic" and len(plan["levels"]) == 1 and k.samples["t_step"].size > 1:
         post = posterior_optimum(stats, k.samples["t_setup"], k.samples["t_step"], k.samples["t_int"], terms=terms,
                                  overlap="exact", use_jax=False)
         predicted["resolution_ci95"] = [_res_list(post.resolution_ci95[0]), _res_list(post.resolution_ci95[1])]

@@ -145,6 +145,33 @@ def posterior_optimum(stats: SceneStats, t_setup, t_step, t_int, *, terms: Terms
         regret=float(np.mean(t_at_med / t_own) - 1.0))
 
 
+def discrete_posterior_optimum(costs, median_costs, cells) -> tuple[tuple[int, int], float]:
+    """The optimum over a fixed set of K candidate grids, under posterior uncertainty.
+
+    For a cost with no closed-form optimum (e.g. with the memory effect): each
+    posterior sample picks its cheapest candidate.
+
+    costs : (S, K) cost per ray of candidate k under sample s; median_costs : (K,) the
+    same under the median constants; cells : (K,) each candidate's cell count.
+    Returns ((k_low, k_high), penalty): the candidates at the 2.5th and 97.5th
+    percentiles of the samples' chosen cell counts (nearest in cells), and the
+    expected relative excess of a sample's choice under the median constants, as
+    :func:`posterior_optimum`'s ``penalty``.
+    """
+    costs = np.atleast_2d(np.asarray(costs, dtype=np.float64))
+    med = np.asarray(median_costs, dtype=np.float64).reshape(-1)
+    cells = np.asarray(cells, dtype=np.float64).reshape(-1)
+    if costs.shape[1] != med.size or med.size != cells.size or med.size == 0:
+        raise ValueError(f"costs {costs.shape}, median_costs {med.shape} and cells {cells.shape} disagree")
+    if not (np.all(np.isfinite(costs)) and np.all(np.isfinite(med)) and np.all(cells > 0)):
+        raise ValueError("costs must be finite and cells > 0")
+    best = np.argmin(costs, axis=1)
+    lo, hi = np.percentile(cells[best], [2.5, 97.5])
+    pick = lambda c: int(np.argmin(np.abs(np.log(cells) - np.log(c))))  # noqa: E731
+    penalty = float(np.mean(med[best]) / float(np.min(med)) - 1.0)
+    return (pick(lo), pick(hi)), penalty
+
+
 def _predict_many(stats, resolution, ts, tt, ti, terms, overlap):
     """predict_uniform over many samples: the counts do not depend on the constants."""
     _, steps, tests = predict_uniform(stats, resolution, 0.0, 1.0, 1.0, overlap=overlap, terms=terms)

@@ -25,6 +25,7 @@ from calibrate._grid import Scene
 from calibrate.predict import _uniform_counts, predict, resolve_constants, scene_statistics
 from models.effects import select_effects
 from models.memory import LINE_BYTES, STEP_LINES, TEST_LINES, lines_beyond_cache, miss_fraction
+from models.uncertainty import discrete_posterior_optimum
 
 RAYS = 2048
 CACHE = 2 << 20
@@ -290,3 +291,29 @@ def test_the_header_carries_t_mem_and_the_cache(planted, tmp_path):
     subprocess.run(["cc", "-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", f"-I{tmp_path}", str(prog),
                     "-o", str(tmp_path / "use"), "-lm"], check=True)
     assert subprocess.run([str(tmp_path / "use")]).returncode == 0
+
+
+def test_discrete_posterior_optimum_recovers_a_planted_split():
+    # three candidates; 30 samples prefer the first, 70 the third; the median prefers the second
+    costs = np.array([[1.0, 2.0, 3.0]] * 30 + [[3.0, 2.0, 1.0]] * 70)
+    median = np.array([1.5, 1.0, 1.2])
+    (lo, hi), penalty = discrete_posterior_optimum(costs, median, [10, 100, 1000])
+    assert (lo, hi) == (0, 2)
+    assert penalty == pytest.approx((0.3 * 1.5 + 0.7 * 1.2) / 1.0 - 1.0)
+    with pytest.raises(ValueError):
+        discrete_posterior_optimum(costs, median[:2], [10, 100])
+
+
+def test_the_resolution_interval_comes_from_the_memory_search_over_posterior_samples():
+    rng = np.random.default_rng(0)
+    n = 400
+    samples = {k: v * np.exp(0.1 * rng.standard_normal(n)) for k, v in TRUTH.items()}
+    samples["t_mem_ns"] = 20.0 * np.exp(0.3 * rng.standard_normal(n))
+    constants = dict(_constants(20.0, 1 << 20))
+    result = predict("sphere", constants=constants, samples=samples, levels="1")
+    assert _effect(result, "memory")["used"]
+    cells = lambda r: int(np.prod(r))  # noqa: E731
+    lo, hi = result["predicted"]["resolution_ci95"]
+    chosen = result["levels"][0]["resolution"]
+    assert cells(lo) <= cells(chosen) <= cells(hi) and cells(lo) < cells(hi)
+    assert 0.0 <= result["predicted"]["uncertainty_penalty"] < 0.1
