@@ -199,9 +199,10 @@ class FitResult:
     """Posterior summary of a fit.
 
     constants : dict name -> {"median": float, "ci68": (lo, hi), "ci95": (lo, hi)},
-        names ``t_setup_ns``, ``t_step_ns``, ``t_int_ns``, ``t_sub_ns`` (ns per
-        ray, step, test, subgrid entry) and ``ratio`` (T_int / T_step,
-        dimensionless). ``t_sub_ns`` is None when the design has no subgrids
+        names ``t_setup_ns``, ``t_step_ns``, ``t_int_ns``, ``t_sub_ns``, ``t_mem_ns``
+        (ns per ray, step, test, subgrid entry, cache line beyond the cache) and
+        ``ratio`` (T_int / T_step, dimensionless). ``t_sub_ns`` is None when the
+        design has no subgrids, ``t_mem_ns`` when it has no ``misses``
         (and any constant not fitted, see ``fit(required=...)``, is None).
     names : tuple of str, the fitted constants, columns of ``samples``.
     samples : (S, P) float, thinned posterior samples of the fitted constants, ns.
@@ -746,7 +747,7 @@ def fit(
     priors: Mapping | None = None,
     fail_fast: Sequence[str] = (),
 ) -> FitResult:
-    """Fit T_setup, T_step, T_int (and T_sub) to batch timings.
+    """Fit T_setup, T_step, T_int (and T_sub, T_mem) to batch timings.
 
     design : mapping, see :func:`prepare_design`. Counts are batch totals,
         ``times_ns`` repeat times of each batch in ns.

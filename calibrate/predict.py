@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from models import baselines as _baselines
-from models.closed_forms import cells_to_resolution, l_level_cells
+from models.closed_forms import MAX_CELLS_PER_AXIS, MAX_TOTAL_CELLS, cells_to_resolution, l_level_cells
 from models.effects import EFFECT_TOLERANCE, select_effects, termination_fraction
 from models.general import Terms, expected_refs, predict_uniform, steps_per_ray
 from models.memory import lines_beyond_cache
@@ -474,15 +474,16 @@ def analytic_uniform_plan(stats, k: Constants, mailbox):
     res = sel.resolution
     steps, tests, refs, mem = _uniform_counts(stats, res, k, sel.terms)
     effects = _effect_dicts(sel)
+    memory_candidates = None
     if k.has_memory:
         cands = {}
         for sc in MEMORY_SEARCH_SCALES:
             r = _scaled(res, sc)
-            if r not in cands:
-                c = _uniform_counts(stats, r, k, sel.terms)
-                cands[r] = (k.cost(c[0], c[1], 0.0, c[3]), c)
+            if r in cands or max(r) > MAX_CELLS_PER_AXIS or r[0] * r[1] * r[2] > MAX_TOTAL_CELLS:
+                continue
+            c = _uniform_counts(stats, r, k, sel.terms)
+            cands[r] = (k.cost(c[0], c[1], 0.0, c[3]), c)
         best = min(cands, key=lambda r: cands[r][0])
-        plan_cands = cands
         eff = _memory_effect(k, *cands[best][1][:2], cands[best][1][3],
                              f"resolution searched from 1/4x to 4x per axis of the memory-free optimum "
                              f"{_fmt_res(res)}: {_fmt_res(best)}")
@@ -490,12 +491,11 @@ def analytic_uniform_plan(stats, k: Constants, mailbox):
         if eff["used"]:
             res = best
             steps, tests, refs, mem = cands[best][1]
-            plan = dict(levels=_level_dicts_uniform(stats, res, refs), steps=steps, tests=tests, subgrids=0.0,
-                        memory_bytes=mem, terms=sel.terms, selection=sel,
-                        memory_candidates=[(r, c[1]) for r, c in plan_cands.items()])
-            return plan, effects
+            memory_candidates = [(r, c[1]) for r, c in cands.items()]
     plan = dict(levels=_level_dicts_uniform(stats, res, refs), steps=steps, tests=tests, subgrids=0.0,
                 memory_bytes=mem, terms=sel.terms, selection=sel)
+    if memory_candidates is not None:
+        plan["memory_candidates"] = memory_candidates
     return plan, effects
 
 

@@ -139,14 +139,14 @@ def holdout_names(configs, seed: int) -> set:
     return set(np.array(ctx)[rng.choice(len(ctx), size=k, replace=False)].tolist())
 
 
-def records(configs, timings: dict, held: set, cache_bytes: int | None = None) -> list:
-    """JSON records of the configurations with their values; with ``cache_bytes``, an
+def records(configs, timings: dict, held: set, cache_size: int | None = None) -> list:
+    """JSON records of the configurations with their values; with ``cache_size`` (bytes), an
     in-context record also carries ``misses``, the memory effect's count (models/memory.py)."""
     out = []
     for c in configs:
         rec = c.record()
-        if cache_bytes is not None and c.kind == "in_context":
-            rec["misses"] = float(lines_beyond_cache(c.steps, c.tests, c.memory_bytes, cache_bytes))
+        if cache_size is not None and c.kind == "in_context":
+            rec["misses"] = float(lines_beyond_cache(c.steps, c.tests, c.memory_bytes, cache_size))
         m = timings.get(c.name)
         rec["values_ns"] = list(m.values_ns) if m else []
         rec["loops"] = int(m.loops) if m else 0
