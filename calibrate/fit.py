@@ -75,6 +75,7 @@ __all__ = [
     "FitResult",
     "fit",
     "holdout_error",
+    "cross_validated_errors",
     "log_posterior_gain",
     "maximum_a_posteriori",
     "predict_batch_times",
@@ -908,6 +909,46 @@ def holdout_errors(result: FitResult, design: Mapping) -> np.ndarray:
     return np.abs(pred / measured - 1.0)
 
 
+def _take(design: Mapping, idx) -> dict:
+    """The configurations ``idx`` of a design (count columns and times; other keys as they are)."""
+    out = {}
+    for k, v in design.items():
+        if k == "times_ns":
+            out[k] = [np.asarray(design[k][int(i)], dtype=float) for i in idx]
+        elif k in COUNT_KEYS and v is not None:
+            out[k] = np.asarray(v)[idx]
+        else:
+            out[k] = v
+    return out
+
+
+def cross_validated_errors(design: Mapping, folds: int = 5, seed: int = 0, *,
+                           required: Sequence[str] = REQUIRED_COUNT_KEYS, priors: Mapping | None = None) -> np.ndarray:
+    """|predicted / measured - 1| of every configuration, each predicted by the posterior's
+    maximum (:func:`maximum_a_posteriori`) fitted to the other folds.
+
+    folds : number of folds (2 .. J); configurations are dealt to folds in a random
+    order drawn from ``seed``.  Measured: the median of each configuration's repeats.
+    Returns (J,) errors in configuration order.  Steadier than one held-back set: every
+    configuration is predicted once, by a fit that did not see it.
+    """
+    n = len(np.asarray(design["rays"]))
+    if not 2 <= int(folds) <= n:
+        raise ValueError(f"folds must be from 2 to the {n} configurations, got {folds!r}")
+    fold = np.empty(n, dtype=int)
+    fold[np.random.default_rng(seed).permutation(n)] = np.arange(n) % int(folds)
+    times = _as_times(design["times_ns"], n)
+    errors = np.empty(n)
+    for f in range(int(folds)):
+        test = np.flatnonzero(fold == f)
+        consts, _ = maximum_a_posteriori(_take(design, np.flatnonzero(fold != f)), seed, required=required,
+                                         priors=priors)
+        held = _take(design, test)
+        pred = sum(v * _count_column(held, COUNT_KEYS[CONSTANT_NAMES.index(name)]) for name, v in consts.items())
+        errors[test] = np.abs(pred / np.array([np.median(times[i]) for i in test]) - 1.0)
+    return errors
+
+
 def split_design(design: Mapping, holdout_fraction: float, rng: np.random.Generator):
     """Split a design's configurations into (fit_design, holdout_design).
 
@@ -923,15 +964,4 @@ def split_design(design: Mapping, holdout_fraction: float, rng: np.random.Genera
     hold = np.sort(perm[:n_hold])
     keep = np.sort(perm[n_hold:])
 
-    def take(idx):
-        out = {}
-        for k, v in design.items():
-            if k == "times_ns":
-                out[k] = [np.asarray(design[k][int(i)], dtype=float) for i in idx]
-            elif k in COUNT_KEYS and v is not None:
-                out[k] = np.asarray(v)[idx]
-            else:
-                out[k] = v
-        return out
-
-    return take(keep), take(hold)
+    return _take(design, keep), _take(design, hold)

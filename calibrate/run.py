@@ -93,6 +93,8 @@ class RunResult:
     warnings: list
     holdout_mare_pooled: float = float("nan")
     holdout_mare_by_rays: dict | None = None
+    cv_mare: float = float("nan")
+    cv_mare_by_rays: dict | None = None
 
 
 def partial_path(out: Path) -> Path:
@@ -190,6 +192,34 @@ def _holdout(result, by_rays, recs):
         if name in by_rays:
             by_set[name] = float(np.median(e))
     return float(np.median(errors)), float(np.median(pooled)), by_set
+
+
+#: Folds of the cross-validated error the run reports beside the held-back one.
+CV_FOLDS = 5
+
+
+def _cross_validated(result, by_rays, recs, seed, priors):
+    """(median error over every in-context configuration, {ray set: median}), each configuration
+    predicted by the posterior maximum of its ray set's model (with T_mem when that set's fit has
+    it) fitted to the other CV_FOLDS - 1 folds; (nan, {}) when a fold cannot be fitted."""
+    groups = {}
+    for r in recs:
+        if r["kind"] == "in_context" and r["values_ns"]:
+            groups.setdefault(r.get("ray_set") if r.get("ray_set") in by_rays else None, []).append(r)
+    errors, by_set = [], {}
+    for name, group in sorted(groups.items(), key=lambda kv: str(kv[0])):
+        fit = by_rays.get(name, result)
+        design = calfile.design_from_measurements(group, "in_context", include_held_back=True)
+        if "t_mem_ns" not in fit.names:
+            design.pop("misses", None)
+        try:
+            e = _fit.cross_validated_errors(design, min(CV_FOLDS, len(group)), seed, priors=priors)
+        except ValueError:
+            return float("nan"), {}
+        errors.extend(e)
+        if name is not None:
+            by_set[name] = float(np.median(e))
+    return (float(np.median(errors)) if errors else float("nan")), by_set
 
 
 def _rel_width(result) -> float:
@@ -355,6 +385,7 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
         for name, why in skipped.items():
             warnings.append(f"ray set {name}: not fitted alone, its predictions use the pooled constants ({why})")
         mare, mare_pooled, mare_by_rays = _holdout(result, by_rays, recs)
+        cv, cv_by_rays = _cross_validated(result, by_rays, recs, seed, _priors(isolated))
         if iso_warning:
             warnings.append(iso_warning)
         cut = 0
@@ -371,7 +402,8 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
         meta = dict(tool="gridcal", budget_s=budget_s, target_rel_width=target_rel_width, seed=seed,
                     intersector=intersector, wall_s=wall, stages=stage, rounds=rounds,
                     holdout_fraction=HOLDOUT_FRACTION, holdout_mare=mare, holdout_mare_pooled=mare_pooled,
-                    holdout_mare_by_rays=mare_by_rays,
+                    holdout_mare_by_rays=mare_by_rays, cv_mare=None if math.isnan(cv) else cv,
+                    cv_mare_by_rays=cv_by_rays, cv_folds=CV_FOLDS,
                     ratio_rel_width=_rel_width(result), pinned_core=pin.core, pin_note=pin.note,
                     rays_per_batch=suites.RAYS_PER_BATCH, min_value_ns=MIN_VALUE_NS,
                     cache_bytes=cache, cache_source=cache_source)
@@ -388,4 +420,5 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
         if part.exists():
             part.unlink()
     return RunResult(calibration=cal, wall_s=wall, holdout_mare=mare, ratio_rel_width=_rel_width(result),
-                     warnings=warnings, holdout_mare_pooled=mare_pooled, holdout_mare_by_rays=mare_by_rays)
+                     warnings=warnings, holdout_mare_pooled=mare_pooled, holdout_mare_by_rays=mare_by_rays,
+                     cv_mare=cv, cv_mare_by_rays=cv_by_rays)

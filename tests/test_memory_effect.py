@@ -179,6 +179,19 @@ def test_fail_fast_stops_a_fit_whose_optional_term_is_not_identified():
     assert "t_mem_ns" not in result.names and "T_mem not fitted" in result.diagnostics["t_mem_skipped"]
 
 
+def test_cross_validation_predicts_every_configuration_once_and_sees_the_missing_term():
+    design = calfile.design_from_measurements(_records(4), "in_context")
+    with_mem = F.cross_validated_errors(design, 5, seed=4, priors=PRIORS)
+    assert with_mem.shape == (N_CONFIGS,) and np.all(np.isfinite(with_mem))
+    # the model that planted the timings predicts unseen batches to about the noise (2%)
+    assert np.median(with_mem) < 0.03
+    without = F.cross_validated_errors({k: v for k, v in design.items() if k != "misses"}, 5, seed=4,
+                                       priors=PRIORS)
+    assert np.median(without) > 2 * np.median(with_mem)
+    with pytest.raises(ValueError, match="folds"):
+        F.cross_validated_errors(design, 1)
+
+
 def test_records_without_misses_fit_four_constants():
     recs = _records(2)
     for r in recs[:3]:

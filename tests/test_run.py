@@ -57,6 +57,13 @@ def test_run_writes_a_valid_calibration(small_suite, tmp_path):
     fitted, skipped = set(cal.get("by_rays", {})), set(cal["meta"].get("by_rays_skipped", {}))
     assert fitted | skipped == {"isotropic", "camera"} and not fitted & skipped
     assert set(cal["meta"]["holdout_mare_by_rays"]) <= fitted
+    # every in-context configuration is also predicted by a fit to the other folds
+    assert cal["meta"]["cv_folds"] == run.CV_FOLDS and 0 <= cal["meta"]["cv_mare"] == result.cv_mare
+    assert set(cal["meta"]["cv_mare_by_rays"]) == fitted
+    # every in-context record carries its grid's bytes and its lines beyond the cache
+    ctx = [m for m in cal["measurements"] if m["kind"] == "in_context"]
+    assert all(m["memory_bytes"] > 0 and m["misses"] >= 0 for m in ctx)
+    assert cal["meta"]["cache_bytes"] > 0
     for ray_set in fitted:
         assert cal["by_rays"][ray_set]["diagnostics"]["converged"] is True
     assert not run.partial_path(out).exists(), "a finished run leaves no partial file"
