@@ -310,7 +310,7 @@ def validate(cal: Any) -> dict:
         _fail("schema_version", f"must be >= 1, got {ver}")
     _object(cal["fingerprint"], "fingerprint")
     for where in ("meta", "fingerprint"):
-        v = (cal.get(where) or {}).get("cache_bytes") if isinstance(cal.get(where), dict) else None
+        v = cal[where].get("cache_bytes") if isinstance(cal.get(where), dict) else None
         if v is not None and not (_is_number(v) and float(v).is_integer() and v > 0):
             _fail(f"{where}.cache_bytes", f"must be a whole number of bytes > 0, got {v!r}")
     _validate_fit(cal, "")

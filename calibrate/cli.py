@@ -162,6 +162,18 @@ def _by_rays_table(cal: dict, title: str):
     return table
 
 
+def _print_cross_validated(console, cal: dict) -> None:
+    """The run's cross-validated error (``meta.cv_mare``), when the calibration has one."""
+    meta = cal.get("meta") or {}
+    if meta.get("cv_mare") is None:
+        return
+    n_ctx = sum(1 for m in cal["measurements"] if m["kind"] == "in_context" and m["values_ns"])
+    per_set = ", ".join(f"{n} {100 * v:.1f}%" for n, v in (meta.get("cv_mare_by_rays") or {}).items())
+    console.print(f"cross-validated over all {n_ctx} in-context configurations ({meta.get('cv_folds')} folds, each "
+                  f"predicted by a fit to the others): {100 * meta['cv_mare']:.1f}%"
+                  + (f" ({per_set})" if per_set else ""))
+
+
 def _constants_table(cal: dict, title: str):
     from rich.table import Table
 
@@ -183,7 +195,7 @@ def _constants_table(cal: dict, title: str):
 # -- verbs -------------------------------------------------------------------------
 
 def cmd_run(args) -> int:
-    from .run import CV_FOLDS, run_calibration
+    from .run import run_calibration
 
     out = Path(args.out)
     console = _console()
@@ -215,11 +227,7 @@ def cmd_run(args) -> int:
                   f"times {100 * result.holdout_mare:.1f}%"
                   + (f" (each by its ray set's constants; by the pooled constants "
                      f"{100 * result.holdout_mare_pooled:.1f}%)" if result.holdout_mare_by_rays else ""))
-    if not math.isnan(result.cv_mare):
-        n_ctx = sum(1 for m in cal["measurements"] if m["kind"] == "in_context" and m["values_ns"])
-        per_set = ", ".join(f"{n} {100 * v:.1f}%" for n, v in (result.cv_mare_by_rays or {}).items())
-        console.print(f"cross-validated over all {n_ctx} in-context configurations ({CV_FOLDS} folds, each predicted "
-                      f"by a fit to the others): {100 * result.cv_mare:.1f}%" + (f" ({per_set})" if per_set else ""))
+    _print_cross_validated(console, cal)
     console.print(f"wall time {time.monotonic() - t0:.1f} s; written to {out}")
     for w in result.warnings[:10]:
         _console(stderr=True).print(f"[yellow]warning:[/yellow] {w}")
@@ -284,10 +292,7 @@ def cmd_show(args) -> int:
                       + (f" (pooled constants: {100 * meta['holdout_mare_pooled']:.1f}%)"
                          if meta.get("holdout_mare_pooled") is not None and meta.get("holdout_mare_by_rays")
                          else ""))
-    if meta.get("cv_mare") is not None:
-        per_set = ", ".join(f"{n} {100 * v:.1f}%" for n, v in (meta.get("cv_mare_by_rays") or {}).items())
-        console.print(f"cross-validated ({meta.get('cv_folds')} folds over every in-context configuration): "
-                      f"{100 * meta['cv_mare']:.1f}%" + (f" ({per_set})" if per_set else ""))
+    _print_cross_validated(console, cal)
     d = cal["diagnostics"]
     console.print(f"posterior: {d.get('n_steps')} steps, acceptance {d.get('acceptance', float('nan')):.2f}, "
                   f"converged {d.get('converged')}")

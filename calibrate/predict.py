@@ -867,10 +867,7 @@ def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analyt
         # searched candidates
         res_c = [r for r, _ in plan["memory_candidates"]]
         cnt = np.array([c for _, c in plan["memory_candidates"]], dtype=np.float64)  # steps, tests, refs, bytes
-        sm = k.samples
-        lines = np.array([k.lines(c[0], c[1], c[3]) for c in cnt])
-        costs = (sm["t_setup"][:, None] + sm["t_step"][:, None] * cnt[:, 0] + sm["t_int"][:, None] * cnt[:, 1]
-                 + sm["t_mem"][:, None] * lines)
+        costs = np.stack([k.cost_samples(c[0], c[1], 0.0, c[3]) for c in cnt], axis=1)
         med = np.array([k.cost(c[0], c[1], 0.0, c[3]) for c in cnt])
         (i_lo, i_hi), pen = discrete_posterior_optimum(costs, med, [r[0] * r[1] * r[2] for r in res_c])
         predicted["resolution_ci95"] = [_res_list(res_c[i_lo]), _res_list(res_c[i_hi])]

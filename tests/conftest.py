@@ -36,3 +36,12 @@ def first_hit_disagreements(t, prim, t_ref, prim_ref, rel_tol: float = 1e-9):
     same = both_miss | (close & (prim == prim_ref))
     ties = close & (prim != prim_ref)
     return np.flatnonzero(~(same | ties)), int(ties.sum())
+
+
+def planted_counts(rng: np.random.Generator, j: int, rays: int) -> dict:
+    """Batch-total counts of synthetic in-context configuration ``j`` for the fit's planted-constant
+    tests: 1-60 steps and 3-100 tests per ray (log-uniform), subgrids (1-13 per ray) in every fourth."""
+    steps_pr = np.exp(rng.uniform(np.log(1.0), np.log(60.0)))
+    tests_pr = np.exp(rng.uniform(np.log(3.0), np.log(100.0)))
+    sub_pr = rng.uniform(1.0, 13.0) if j % 4 == 0 else 0.0
+    return dict(steps=int(rays * steps_pr), tests=int(rays * tests_pr), subgrids=int(rays * sub_pr))

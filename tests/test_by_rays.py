@@ -21,6 +21,7 @@ from calibrate import run
 from calibrate.export import export
 from calibrate.plots import relative_residuals
 from calibrate.predict import load_calibration_constants, predict
+from conftest import planted_counts
 
 RAYS = 2048
 # Constants of the same order as a measured host's (docs/calibration.md), ns.
@@ -42,10 +43,7 @@ def _records(seed: int) -> list[dict]:
     rng = np.random.default_rng(seed)
     recs = []
     for j in range(N_PER_SET):
-        steps_pr = np.exp(rng.uniform(np.log(1.0), np.log(60.0)))
-        tests_pr = np.exp(rng.uniform(np.log(3.0), np.log(100.0)))
-        sub_pr = rng.uniform(1.0, 13.0) if j % 4 == 0 else 0.0
-        counts = dict(steps=int(RAYS * steps_pr), tests=int(RAYS * tests_pr), subgrids=int(RAYS * sub_pr))
+        counts = planted_counts(rng, j, RAYS)
         for ray_set, t in TRUTH.items():
             mu = (RAYS * t["t_setup_ns"] + counts["steps"] * t["t_step_ns"] + counts["tests"] * t["t_int_ns"]
                   + counts["subgrids"] * t["t_sub_ns"])

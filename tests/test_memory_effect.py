@@ -23,6 +23,7 @@ from calibrate import fit as F
 from calibrate.export import export
 from calibrate._grid import Scene
 from calibrate.predict import _uniform_counts, predict, resolve_constants, scene_statistics
+from conftest import planted_counts
 from models.effects import select_effects
 from models.memory import LINE_BYTES, STEP_LINES, TEST_LINES, lines_beyond_cache, miss_fraction
 from models.uncertainty import discrete_posterior_optimum
@@ -107,11 +108,8 @@ def _records(seed: int, truth=TRUTH, memory_scale=1.0) -> list[dict]:
     rng = np.random.default_rng(seed)
     recs = []
     for j in range(N_CONFIGS):
-        steps_pr = np.exp(rng.uniform(np.log(1.0), np.log(60.0)))
-        tests_pr = np.exp(rng.uniform(np.log(3.0), np.log(100.0)))
-        sub_pr = rng.uniform(1.0, 13.0) if j % 4 == 0 else 0.0
+        counts = planted_counts(rng, j, RAYS)
         memory = int(memory_scale * np.exp(rng.uniform(np.log(1e5), np.log(4e7))))
-        counts = dict(steps=int(RAYS * steps_pr), tests=int(RAYS * tests_pr), subgrids=int(RAYS * sub_pr))
         misses = float(lines_beyond_cache(counts["steps"], counts["tests"], memory, CACHE))
         mu = (RAYS * truth["t_setup_ns"] + counts["steps"] * truth["t_step_ns"] + counts["tests"] * truth["t_int_ns"]
               + counts["subgrids"] * truth["t_sub_ns"] + misses * truth["t_mem_ns"])

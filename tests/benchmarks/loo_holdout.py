@@ -26,16 +26,12 @@ from calibrate import fit as F  # noqa: E402
 
 
 def loo_errors(recs: list, priors: dict, memory: bool) -> np.ndarray:
-    """|predicted / measured - 1| of each record, predicted from the others' maximum a posteriori."""
-    errors = []
-    for i, rec in enumerate(recs):
-        design = calfile.design_from_measurements(recs[:i] + recs[i + 1:], "in_context", include_held_back=True)
-        if not memory:
-            design.pop("misses", None)
-        consts, _ = F.maximum_a_posteriori(design, 0, priors=priors)
-        pred = sum(v * float(rec.get(F.COUNT_KEYS[F.CONSTANT_NAMES.index(name)], 0.0)) for name, v in consts.items())
-        errors.append(abs(pred / float(np.median(rec["values_ns"])) - 1.0))
-    return np.array(errors)
+    """|predicted / measured - 1| of each record, predicted from the others' maximum a posteriori
+    (cross-validation with one record per fold)."""
+    design = calfile.design_from_measurements(recs, "in_context", include_held_back=True)
+    if not memory:
+        design.pop("misses", None)
+    return F.cross_validated_errors(design, folds=len(recs), seed=0, priors=priors)
 
 
 def main() -> None:
