@@ -10,7 +10,7 @@ from setuptools import Extension, setup
 from setuptools.command.build_ext import build_ext
 
 KERNEL_SOURCES = ["grid.c", "build.c", "overlap.c", "traverse.c", "brute.c", "stats.c"]
-CFLAGS = ["-std=c99", "-O2", "-ffp-contract=off", "-fno-fast-math"]
+CFLAGS = ["-std=c99", "-O2", "-pthread", "-ffp-contract=off", "-fno-fast-math"]
 
 
 class BuildExt(build_ext):
@@ -36,6 +36,7 @@ setup(
             sources=["calibrate/_kernels.c"] + [f"kernels/{s}" for s in KERNEL_SOURCES],
             include_dirs=["kernels", numpy.get_include()],
             extra_compile_args=CFLAGS,
+            extra_link_args=["-pthread"],
             depends=[f"kernels/{h}" for h in
                      ["gridcal.h", "gc_internal.h", "box.h", "triangle.h", "traverse_impl.h"]],
         )

@@ -39,8 +39,13 @@ TIMING_CLOCKS = ("wall", "thread")
 DEFAULT_SUBDIVIDE_THRESHOLD = 2
 #: Largest per-axis resolution the nesting rule gives a subgrid.
 DEFAULT_RULE_MAX_AXIS = 256
+#: Threads a build uses by default: its passes over the triangles and the references run in
+#: two parts at once (the grid is the same, byte for byte, for any number).
+DEFAULT_BUILD_THREADS = 2
 #: Levels a nested grid may have (top level included).
 MAX_LEVELS = _kernels.MAX_LEVELS
+#: Most threads a build uses (the kernel's GC_MAX_THREADS).
+MAX_BUILD_THREADS = _kernels.MAX_BUILD_THREADS
 #: Largest subdivide threshold (references per cell): a cell subdivides when its uint32_t
 #: reference count exceeds the threshold, and 2^32 - 2 is the largest such a count can exceed.
 MAX_SUBDIVIDE_THRESHOLD = 2**32 - 2
@@ -488,7 +493,7 @@ class Grid:
     # -- construction -------------------------------------------------------------
     @classmethod
     def _build(cls, scene: Scene, resolution, *, intersector, mailbox, insertion, levels, threshold,
-               level_scale, level_exponent, subgrid_resolutions, rule_max_axis, memory_limit):
+               level_scale, level_exponent, subgrid_resolutions, rule_max_axis, memory_limit, threads):
         if not isinstance(scene, Scene):
             raise ValueError(f"scene must be a calibrate.Scene, got {type(scene).__name__}")
         res = _check_resolution(resolution)
@@ -497,6 +502,7 @@ class Grid:
         if memory_limit is not None:
             memory_limit = _whole_number(memory_limit, "memory_limit (bytes)", 1, MAX_INT64, "2^63 - 1")
         mailbox = _flag(mailbox, "mailbox")
+        threads = _whole_number(threads, "threads", 1, MAX_BUILD_THREADS, str(MAX_BUILD_THREADS))
         box = list(scene.box_lo) + list(scene.box_hi)
         options = dict(resolution=res, intersector=intersector, mailbox=mailbox, insertion=insertion,
                        levels=levels, threshold=threshold)
@@ -506,32 +512,37 @@ class Grid:
                 insertion=INSERTIONS[insertion], mailbox=mailbox, box=box,
                 memory_limit=int(memory_limit or 0), levels=int(levels), threshold=int(threshold),
                 level_scale=level_scale, level_exponent=level_exponent,
-                subgrid_resolutions=subgrid_resolutions, rule_max_axis=int(rule_max_axis))
+                subgrid_resolutions=subgrid_resolutions, rule_max_axis=int(rule_max_axis),
+                threads=threads)
         except (OverflowError, MemoryError) as exc:
             raise ValueError(f"cannot build the grid: {exc}") from None
         return cls(scene, cap, options)
 
     @classmethod
     def uniform(cls, scene: Scene, resolution, intersector: str = "watertight", mailbox: bool = False,
-                insertion: str = "exact", memory_limit: int | None = None) -> "Grid":
+                insertion: str = "exact", memory_limit: int | None = None,
+                threads: int = DEFAULT_BUILD_THREADS) -> "Grid":
         """A uniform grid of ``resolution = (nx, ny, nz)`` cells over the scene's grid box.
 
         ``insertion='exact'`` stores a triangle in the cells it overlaps (separating
         axis test); ``'bounds'`` in every cell its bounding box overlaps.  A
         resolution that overflows 32-bit cell offsets or passes ``memory_limit``
-        (bytes; default 8 GiB) raises ``ValueError``.
+        (bytes; default 8 GiB) raises ``ValueError``.  ``threads`` (1 to 64) splits the
+        build's passes over triangles and references into that many parts run at
+        once; the grid is the same for any number.
         """
         scales, exps = manta_rule(1)
         return cls._build(scene, resolution, intersector=intersector, mailbox=mailbox, insertion=insertion,
                           levels=1, threshold=DEFAULT_SUBDIVIDE_THRESHOLD, level_scale=scales,
                           level_exponent=exps, subgrid_resolutions=None,
-                          rule_max_axis=DEFAULT_RULE_MAX_AXIS, memory_limit=memory_limit)
+                          rule_max_axis=DEFAULT_RULE_MAX_AXIS, memory_limit=memory_limit, threads=threads)
 
     @classmethod
     def nested(cls, scene: Scene, levels: int = 2, resolution=None, *, scale: float = MANTA_SCALE,
                exponents=None, threshold: int = DEFAULT_SUBDIVIDE_THRESHOLD, subgrid_resolutions=None,
                rule_max_axis: int = DEFAULT_RULE_MAX_AXIS, intersector: str = "watertight",
-               mailbox: bool = False, insertion: str = "exact", memory_limit: int | None = None) -> "Grid":
+               mailbox: bool = False, insertion: str = "exact", memory_limit: int | None = None,
+               threads: int = DEFAULT_BUILD_THREADS) -> "Grid":
         """A nested grid of ``levels`` levels (1 = uniform).
 
         The top level has ``resolution`` (default: the rule applied to all N
@@ -540,7 +551,8 @@ class Grid:
         where n is the cell's reference count and exponent defaults to Manta's
         3 / (2L + 1 - 2 depth); or, at depth 1, the explicit per-cell
         ``subgrid_resolutions`` ((nx*ny*nz, 3) int, x fastest; a row of zeros
-        means no subgrid), deeper levels following the rule.
+        means no subgrid), deeper levels following the rule.  ``threads`` as for
+        :meth:`uniform`.
         """
         levels = _whole_number(levels, "levels", 1, MAX_LEVELS, str(MAX_LEVELS))
         if not _positive_finite(scale):
@@ -577,7 +589,7 @@ class Grid:
         return cls._build(scene, res, intersector=intersector, mailbox=mailbox, insertion=insertion,
                           levels=int(levels), threshold=int(threshold), level_scale=scales,
                           level_exponent=exps, subgrid_resolutions=sub, rule_max_axis=rule_max_axis,
-                          memory_limit=memory_limit)
+                          memory_limit=memory_limit, threads=threads)
 
     # -- properties ---------------------------------------------------------------
     @property

@@ -106,15 +106,16 @@ static PyObject *py_build(PyObject *self, PyObject *args, PyObject *kw)
     static char *kwlist[] = {"vertices", "faces", "resolution", "intersector", "insertion",
                              "mailbox", "box", "memory_limit", "levels", "threshold",
                              "level_scale", "level_exponent", "subgrid_resolutions",
-                             "rule_max_axis", NULL};
+                             "rule_max_axis", "threads", NULL};
     PyObject *vobj, *fobj, *box = Py_None, *scale = Py_None, *expo = Py_None, *subres = Py_None;
     int rx, ry, rz, intersector = GC_WATERTIGHT, insertion = GC_INSERT_EXACT, mailbox = 0, levels = 1;
-    int rule_max_axis = 256;
+    int rule_max_axis = 256, threads = 1;
     unsigned long long memory_limit = 0;
     unsigned int threshold = 2;
-    if (!PyArg_ParseTupleAndKeywords(args, kw, "OO(iii)|iipOKiIOOOi", kwlist, &vobj, &fobj, &rx, &ry,
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OO(iii)|iipOKiIOOOii", kwlist, &vobj, &fobj, &rx, &ry,
                                      &rz, &intersector, &insertion, &mailbox, &box, &memory_limit,
-                                     &levels, &threshold, &scale, &expo, &subres, &rule_max_axis)) {
+                                     &levels, &threshold, &scale, &expo, &subres, &rule_max_axis,
+                                     &threads)) {
         return NULL;
     }
     gc_build_params p = gc_build_params_default();
@@ -126,6 +127,7 @@ static PyObject *py_build(PyObject *self, PyObject *args, PyObject *kw)
     p.levels = levels;
     p.subdivide_threshold = threshold;
     p.rule_max_axis = rule_max_axis;
+    p.threads = threads;
     if (box != Py_None) {
         double b[6];
         if (read_doubles(box, b, 6, "box (lo x, y, z, hi x, y, z)") < 0) {
@@ -574,6 +576,7 @@ PyMODINIT_FUNC PyInit__kernels(void)
     PyModule_AddStringConstant(m, "CFLAGS", GRIDCAL_CFLAGS);
     PyModule_AddStringConstant(m, "VERSION", GC_VERSION_STRING);
     PyModule_AddIntConstant(m, "MAX_LEVELS", GC_MAX_LEVELS);
+    PyModule_AddIntConstant(m, "MAX_BUILD_THREADS", GC_MAX_THREADS);
     PyModule_AddIntConstant(m, "MOLLER_TRUMBORE", GC_MOLLER_TRUMBORE);
     PyModule_AddIntConstant(m, "WATERTIGHT", GC_WATERTIGHT);
     PyModule_AddIntConstant(m, "INSERT_EXACT", GC_INSERT_EXACT);

@@ -6,7 +6,7 @@ gc_status gc_brute_force(const gc_mesh *mesh, gc_intersector intersector, int64_
                          const double *origins, const double *directions, double *t, int32_t *prim,
                          char *err)
 {
-    gc_status st = gc_check_mesh(mesh, 1, err);
+    gc_status st = gc_check_mesh(mesh, 1, NULL, NULL, err);
     if (st != GC_OK) {
         return st;
     }

@@ -10,7 +10,17 @@
  * Every size is checked before it is allocated: a resolution whose cell count
  * overflows the 32-bit cell offsets, a reference count that overflows them, or
  * a grid that would pass the memory limit is refused with a message.
+ *
+ * With params.threads > 1 the passes over many triangles or references (the
+ * face scan, the triangle copy, the pair collection and the per-reference
+ * copies) run in that many contiguous parts at once, and the parts are joined in
+ * order, so the grid is the same, byte for byte, as one thread builds.  Built
+ * with GC_NO_THREADS, or where a thread cannot start, the parts run one after
+ * the other on the calling thread.
  */
+#if !defined(GC_NO_THREADS) && !defined(_POSIX_C_SOURCE)
+#define _POSIX_C_SOURCE 200809L /* pthreads under -std=c99 */
+#endif
 #include "gc_internal.h"
 #include "overlap.h"
 
@@ -18,12 +28,18 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#ifndef GC_NO_THREADS
+#include <pthread.h>
+#endif
 
 /* Cells are widened by this fraction of their size (plus a few ulps of their
  * coordinates) when triangles are inserted, so a triangle touching a cell
  * within rounding is stored in it and traversal never misses it. */
 #define GC_CELL_WIDEN_FRACTION 1e-7
 #define GC_CELL_WIDEN_ULPS 8.0
+
+/* The fewest items worth a part of their own. */
+#define GC_MIN_PART_ITEMS 16384
 
 typedef struct {
     gc_grid *g;
@@ -32,7 +48,97 @@ typedef struct {
     uint64_t scratch;      /* bytes of scratch held by the builders on the stack */
     const gc_build_params *p;
     char *err;
+    int threads;           /* parts a pass may be split into (>= 1) */
+#ifndef GC_NO_THREADS
+    pthread_mutex_t lock;  /* guards scratch and err while parts run */
+#endif
 } builder;
+
+static void builder_lock(builder *b)
+{
+#ifndef GC_NO_THREADS
+    if (b->threads > 1) {
+        pthread_mutex_lock(&b->lock);
+    }
+#else
+    (void)b;
+#endif
+}
+
+static void builder_unlock(builder *b)
+{
+#ifndef GC_NO_THREADS
+    if (b->threads > 1) {
+        pthread_mutex_unlock(&b->lock);
+    }
+#else
+    (void)b;
+#endif
+}
+
+/* Parts for a pass over n items: one per GC_MIN_PART_ITEMS, at most b->threads. */
+static int parts_for(const builder *b, int64_t n)
+{
+    int64_t k = n / GC_MIN_PART_ITEMS;
+    return k < 1 ? 1 : (k < b->threads ? (int)k : b->threads);
+}
+
+/* First item of part k of n items in `parts` parts, rounded down to a multiple of
+ * `align` (so that parts never share a pack); part `parts` starts at n. */
+static int64_t part_start(int64_t n, int k, int parts, int64_t align)
+{
+    if (k >= parts) {
+        return n;
+    }
+    int64_t s = (int64_t)((double)n * (double)k / (double)parts);
+    return s - s % align;
+}
+
+typedef void (*part_fn)(void *job);
+
+#ifndef GC_NO_THREADS
+typedef struct {
+    part_fn fn;
+    void *job;
+} part_call;
+
+static void *part_thread(void *arg)
+{
+    part_call *c = arg;
+    c->fn(c->job);
+    return NULL;
+}
+#endif
+
+/* fn(jobs + k * job_size) for k = 0 .. parts - 1: part 0 on the calling thread,
+ * the others on threads of their own (or on the calling thread, after part 0, if
+ * a thread cannot start).  Returns when every part is done. */
+static void run_parts(part_fn fn, void *jobs, size_t job_size, int parts)
+{
+    char *base = jobs;
+#ifndef GC_NO_THREADS
+    pthread_t tid[GC_MAX_THREADS];
+    part_call call[GC_MAX_THREADS];
+    int started[GC_MAX_THREADS];
+    for (int k = 1; k < parts; ++k) {
+        call[k].fn = fn;
+        call[k].job = base + (size_t)k * job_size;
+        started[k] = pthread_create(&tid[k], NULL, part_thread, &call[k]) == 0;
+    }
+    fn(base);
+    for (int k = 1; k < parts; ++k) {
+        if (started[k]) {
+            pthread_join(tid[k], NULL);
+        } else {
+            fn(base + (size_t)k * job_size);
+        }
+    }
+#else
+    for (int k = 0; k < parts; ++k) {
+        fn(base + (size_t)k * job_size);
+    }
+#endif
+}
 
 typedef struct {
     uint32_t cell;
@@ -184,78 +290,67 @@ static void scratch_free(builder *b, void *p, size_t bytes)
     b->scratch -= bytes;
 }
 
-/* Double the pair scratch (the rare path of collect_pairs). */
+/* Double the pair scratch (the rare path of collect_part; parts may call it at once). */
 static gc_status grow_pairs(builder *b, pair **pairs, int64_t *cap)
 {
+    gc_status st = GC_OK;
+    builder_lock(b);
     if ((uint64_t)*cap >= GC_MAX_REFS) {
         gc_set_error(b->err,
                      "more than %llu triangle references in one grid level: "
                      "the resolution is too fine for 32-bit reference offsets",
                      (unsigned long long)GC_MAX_REFS);
-        return GC_ERR_OVERFLOW;
+        st = GC_ERR_OVERFLOW;
+        goto done;
     }
     int64_t cap2 = *cap * 2;
     size_t grow = (size_t)(cap2 - *cap) * sizeof(pair);
-    gc_status st = check_memory(b, grow, "the triangle references");
+    st = check_memory(b, grow, "the triangle references");
     if (st != GC_OK) {
-        return st;
+        goto done;
     }
     pair *p2 = realloc(*pairs, (size_t)cap2 * sizeof(pair));
     if (!p2) {
         gc_set_error(b->err, "out of memory recording triangle references");
-        return GC_ERR_NO_MEMORY;
+        st = GC_ERR_NO_MEMORY;
+        goto done;
     }
     b->scratch += grow;
     *pairs = p2;
     *cap = cap2;
-    return GC_OK;
+done:
+    builder_unlock(b);
+    return st;
 }
 
-/* Record every (cell, triangle) pair of node `nd`.  *pairs_out is scratch of
- * *cap_out entries (release with scratch_free).  The widened cell bounds, centres
- * and half sizes along each axis are tabulated once per node (cell_box). */
-static gc_status collect_pairs(builder *b, const gc_node *nd, const uint32_t *prims, int64_t n_prims,
-                               pair **pairs_out, int64_t *n_out, int64_t *cap_out)
-{
-    int64_t n = 0, cap = n_prims > 0 ? n_prims : 1;
+/* One part of collect_pairs: the pairs of a contiguous run of the node's triangles. */
+typedef struct {
+    builder *b;
+    const gc_node *nd;
+    const uint32_t *prims;
+    int64_t n_prims;
+    int exact;
+    const double *clo[3], *chi[3], *cmid[3], *chalf[3]; /* the widened cells per axis */
+    pair *pairs;                                        /* scratch of cap entries */
+    int64_t n, cap;
     gc_status st;
-    const int exact = b->p->insertion == GC_INSERT_EXACT;
-    const int64_t n_axis = (int64_t)nd->n[0] + nd->n[1] + nd->n[2];
-    const size_t tab_bytes = exact ? (size_t)n_axis * 4 * sizeof(double) : 0;
-    double *tab = exact ? scratch_alloc(b, tab_bytes, "the cell bounds", &st) : NULL;
-    if (exact && !tab) {
-        return st;
-    }
-    pair *pairs = scratch_alloc(b, (size_t)cap * sizeof(pair), "the triangle references", &st);
-    if (!pairs) {
-        if (tab) {
-            scratch_free(b, tab, tab_bytes);
-        }
-        return st;
-    }
-    /* tab: per axis i, from base[i], the cells' widened lo, hi, centre and half size */
-    const double *clo[3], *chi[3], *cmid[3], *chalf[3];
-    if (exact) {
-        int64_t base = 0;
-        for (int i = 0; i < 3; ++i) {
-            double *lo = tab + base, *hi = lo + n_axis, *mid = hi + n_axis, *half = mid + n_axis;
-            for (int32_t c = 0; c < nd->n[i]; ++c) {
-                int32_t xyz[3] = {0, 0, 0};
-                double l3[3], h3[3];
-                xyz[i] = c;
-                cell_box(nd, xyz[0], xyz[1], xyz[2], l3, h3);
-                lo[c] = l3[i];
-                hi[c] = h3[i];
-                mid[c] = 0.5 * (l3[i] + h3[i]);
-                half[c] = 0.5 * (h3[i] - l3[i]);
-            }
-            clo[i] = lo, chi[i] = hi, cmid[i] = mid, chalf[i] = half;
-            base += nd->n[i];
-        }
-    }
+} collect_job;
+
+static void collect_part(void *arg)
+{
+    collect_job *j = arg;
+    builder *b = j->b;
+    const gc_node *nd = j->nd;
+    const int exact = j->exact;
+    const double *const *clo = j->clo, *const *chi = j->chi, *const *cmid = j->cmid,
+                        *const *chalf = j->chalf;
+    pair *pairs = j->pairs;
+    int64_t n = 0, cap = j->cap;
+    gc_status st = GC_OK;
     const int64_t nx = nd->n[0], nxy = (int64_t)nd->n[0] * nd->n[1];
-    for (int64_t k = 0; k < n_prims; ++k) {
-        const gc_tri *t = &b->g->tris[prims[k]];
+    for (int64_t k = 0; k < j->n_prims; ++k) {
+        const uint32_t prim = j->prims[k];
+        const gc_tri *t = &b->g->tris[prim];
         int32_t r0[3], r1[3];
         double bmin[3], bmax[3];
         int spread = 0; /* axes along which the bounds span several cells or leave the node */
@@ -279,7 +374,7 @@ static gc_status collect_pairs(builder *b, const gc_node *nd, const uint32_t *pr
             const int row = exact && span > 1;
             while (n + span > cap) {
                 if ((st = grow_pairs(b, &pairs, &cap)) != GC_OK) {
-                    goto fail;
+                    goto out;
                 }
             }
             for (int32_t z = r0[2]; z <= r1[2]; ++z) {
@@ -290,7 +385,7 @@ static gc_status collect_pairs(builder *b, const gc_node *nd, const uint32_t *pr
                             continue;
                         }
                         pairs[n].cell = (uint32_t)(x + nx * y + nxy * z);
-                        pairs[n].prim = prims[k];
+                        pairs[n].prim = prim;
                         ++n;
                     }
                 }
@@ -309,28 +404,105 @@ static gc_status collect_pairs(builder *b, const gc_node *nd, const uint32_t *pr
                         continue;
                     }
                     if (n == cap && (st = grow_pairs(b, &pairs, &cap)) != GC_OK) {
-                        goto fail;
+                        goto out;
                     }
                     pairs[n].cell = (uint32_t)(x + nx * y + nxy * z);
-                    pairs[n].prim = prims[k];
+                    pairs[n].prim = prim;
                     ++n;
                 }
             }
         }
     }
+out:
+    j->pairs = pairs;
+    j->n = n;
+    j->cap = cap;
+    j->st = st;
+}
+
+static void free_pair_parts(builder *b, collect_job *jobs, int parts)
+{
+    for (int k = 0; k < parts; ++k) {
+        if (jobs[k].pairs) {
+            scratch_free(b, jobs[k].pairs, (size_t)jobs[k].cap * sizeof(pair));
+            jobs[k].pairs = NULL;
+        }
+    }
+}
+
+/* Record every (cell, triangle) pair of node `nd`, in `*parts_out` parts over
+ * contiguous runs of prims: jobs[k].pairs holds jobs[k].n pairs (scratch of
+ * jobs[k].cap entries; release with free_pair_parts), and the parts in order are
+ * the pairs in the order of prims.  The widened cell bounds, centres and half
+ * sizes along each axis are tabulated once per node (cell_box). */
+static gc_status collect_pairs(builder *b, const gc_node *nd, const uint32_t *prims, int64_t n_prims,
+                               collect_job jobs[GC_MAX_THREADS], int *parts_out)
+{
+    gc_status st = GC_OK;
+    const int exact = b->p->insertion == GC_INSERT_EXACT;
+    const int64_t n_axis = (int64_t)nd->n[0] + nd->n[1] + nd->n[2];
+    const size_t tab_bytes = exact ? (size_t)n_axis * 4 * sizeof(double) : 0;
+    double *tab = exact ? scratch_alloc(b, tab_bytes, "the cell bounds", &st) : NULL;
+    if (exact && !tab) {
+        return st;
+    }
+    const int parts = parts_for(b, n_prims);
+    memset(jobs, 0, (size_t)parts * sizeof *jobs);
+    for (int k = 0; k < parts && st == GC_OK; ++k) {
+        collect_job *j = &jobs[k];
+        const int64_t s0 = part_start(n_prims, k, parts, 1), s1 = part_start(n_prims, k + 1, parts, 1);
+        j->b = b;
+        j->nd = nd;
+        j->prims = prims + s0;
+        j->n_prims = s1 - s0;
+        j->exact = exact;
+        j->cap = j->n_prims > 0 ? j->n_prims : 1;
+        j->pairs = scratch_alloc(b, (size_t)j->cap * sizeof(pair), "the triangle references", &st);
+    }
+    if (st != GC_OK) {
+        free_pair_parts(b, jobs, parts);
+        if (tab) {
+            scratch_free(b, tab, tab_bytes);
+        }
+        return st;
+    }
+    /* tab: per axis i, from base[i], the cells' widened lo, hi, centre and half size */
+    if (exact) {
+        int64_t base = 0;
+        for (int i = 0; i < 3; ++i) {
+            double *lo = tab + base, *hi = lo + n_axis, *mid = hi + n_axis, *half = mid + n_axis;
+            for (int32_t c = 0; c < nd->n[i]; ++c) {
+                int32_t xyz[3] = {0, 0, 0};
+                double l3[3], h3[3];
+                xyz[i] = c;
+                cell_box(nd, xyz[0], xyz[1], xyz[2], l3, h3);
+                lo[c] = l3[i];
+                hi[c] = h3[i];
+                mid[c] = 0.5 * (l3[i] + h3[i]);
+                half[c] = 0.5 * (h3[i] - l3[i]);
+            }
+            for (int k = 0; k < parts; ++k) {
+                jobs[k].clo[i] = lo, jobs[k].chi[i] = hi, jobs[k].cmid[i] = mid, jobs[k].chalf[i] = half;
+            }
+            base += nd->n[i];
+        }
+    }
+    run_parts(collect_part, jobs, sizeof *jobs, parts);
     if (tab) {
         scratch_free(b, tab, tab_bytes);
     }
-    *pairs_out = pairs;
-    *n_out = n;
-    *cap_out = cap;
+    for (int k = 0; k < parts; ++k) {
+        if (jobs[k].st != GC_OK) {
+            st = jobs[k].st;
+            break;
+        }
+    }
+    if (st != GC_OK) {
+        free_pair_parts(b, jobs, parts);
+        return st;
+    }
+    *parts_out = parts;
     return GC_OK;
-fail:
-    scratch_free(b, pairs, (size_t)cap * sizeof(pair));
-    if (tab) {
-        scratch_free(b, tab, tab_bytes);
-    }
-    return st;
 }
 
 /* Resolution of the subgrid for local cell `c` of node `nd` (depth `depth`), or
@@ -400,11 +572,15 @@ static gc_status build_node(builder *b, const uint32_t *prims, int64_t n_prims, 
     }
 
     /* pairs, then a counting sort by cell */
-    pair *pairs = NULL;
-    int64_t n_pairs = 0, cap_pairs = 0;
-    st = collect_pairs(b, &nd, prims, n_prims, &pairs, &n_pairs, &cap_pairs);
+    collect_job jobs[GC_MAX_THREADS];
+    int parts = 0;
+    int64_t n_pairs = 0;
+    st = collect_pairs(b, &nd, prims, n_prims, jobs, &parts);
     if (st != GC_OK) {
         return st;
+    }
+    for (int k = 0; k < parts; ++k) {
+        n_pairs += jobs[k].n;
     }
     size_t off_bytes = (size_t)(ncell + 1) * sizeof(uint32_t);
     size_t sorted_bytes = (size_t)(n_pairs > 0 ? n_pairs : 1) * sizeof(uint32_t);
@@ -414,24 +590,30 @@ static gc_status build_node(builder *b, const uint32_t *prims, int64_t n_prims, 
         if (off) {
             scratch_free(b, off, off_bytes);
         }
-        scratch_free(b, pairs, (size_t)cap_pairs * sizeof(pair));
+        free_pair_parts(b, jobs, parts);
         return st;
     }
     memset(off, 0, off_bytes);
-    for (int64_t k = 0; k < n_pairs; ++k) {
-        off[pairs[k].cell + 1]++;
+    for (int k = 0; k < parts; ++k) {
+        const pair *pairs = jobs[k].pairs;
+        for (int64_t q = 0; q < jobs[k].n; ++q) {
+            off[pairs[q].cell + 1]++;
+        }
     }
     for (int64_t c = 0; c < ncell; ++c) {
         off[c + 1] += off[c];
     }
-    for (int64_t k = 0; k < n_pairs; ++k) {
-        sorted[off[pairs[k].cell]++] = pairs[k].prim;
+    for (int k = 0; k < parts; ++k) { /* the parts in order: the pairs in the order of prims */
+        const pair *pairs = jobs[k].pairs;
+        for (int64_t q = 0; q < jobs[k].n; ++q) {
+            sorted[off[pairs[q].cell]++] = pairs[q].prim;
+        }
     }
     for (int64_t c = ncell; c > 0; --c) { /* the scatter advanced each offset to its end */
         off[c] = off[c - 1];
     }
     off[0] = 0;
-    scratch_free(b, pairs, (size_t)cap_pairs * sizeof(pair));
+    free_pair_parts(b, jobs, parts);
 
     /* leaf cells take their references; crowded cells get a subgrid */
     for (int64_t c = 0; c < ncell && st == GC_OK; ++c) {
@@ -482,77 +664,170 @@ static gc_status build_node(builder *b, const uint32_t *prims, int64_t n_prims, 
     return st;
 }
 
-/* Spread the low 21 bits of x to every third bit (Morton encoding). */
-static uint64_t spread_bits(uint64_t x)
+/* Spread the low 10 bits of x to every third bit (Morton encoding). */
+static uint32_t spread_bits(uint32_t x)
 {
-    x &= 0x1fffff;
-    x = (x | x << 32) & 0x1f00000000ffffull;
-    x = (x | x << 16) & 0x1f0000ff0000ffull;
-    x = (x | x << 8) & 0x100f00f00f00f00full;
-    x = (x | x << 4) & 0x10c30c30c30c30c3ull;
-    x = (x | x << 2) & 0x1249249249249249ull;
+    x &= 0x3ffu;
+    x = (x | x << 16) & 0x030000ffu;
+    x = (x | x << 8) & 0x0300f00fu;
+    x = (x | x << 4) & 0x030c30c3u;
+    x = (x | x << 2) & 0x09249249u;
     return x;
 }
 
+/* One part of scan_faces: faces [f0, f1) checked, bounded and coded. */
 typedef struct {
-    uint64_t key;
-    uint32_t index;
-    uint32_t pad;
-} keyed;
+    const gc_mesh *mesh;
+    int64_t f0, f1;
+    double klo[3], scale[3], top;
+    uint64_t *codes;
+    double lo[3], hi[3]; /* out: bounds of the part's vertices */
+    int bad;             /* out: an index out of range or a vertex not finite */
+} scan_job;
 
-/* The mesh's faces in Morton order of their centroids within [lo, hi], by an
- * LSD radix sort (stable, so equal codes keep the mesh's order).  order
- * receives n face indices. */
-static gc_status morton_order(builder *b, const gc_mesh *mesh, const double lo[3], const double hi[3],
-                              uint32_t *order)
+static void scan_part(void *arg)
 {
-    const int64_t n = mesh->n_faces;
-    size_t bytes = (size_t)(n > 0 ? n : 1) * sizeof(keyed);
+    scan_job *j = arg;
+    const double *v = j->mesh->vertices;
+    const int64_t *fv = j->mesh->faces;
+    const uint64_t nv = (uint64_t)j->mesh->n_vertices;
+    const double top = j->top;
+    double l0 = INFINITY, l1 = INFINITY, l2 = INFINITY;
+    double h0 = -INFINITY, h1 = -INFINITY, h2 = -INFINITY;
+    int bad = 0;
+    for (int64_t f = j->f0; f < j->f1; ++f) {
+        const int64_t i0 = fv[3 * f], i1 = fv[3 * f + 1], i2 = fv[3 * f + 2];
+        if (((uint64_t)i0 >= nv) | ((uint64_t)i1 >= nv) | ((uint64_t)i2 >= nv)) {
+            bad = 1;
+            break;
+        }
+        const double *p0 = v + 3 * i0, *p1 = v + 3 * i1, *p2 = v + 3 * i2;
+        /* x - x is 0 for a finite x and NaN for an infinite or NaN one */
+        if (!((p0[0] - p0[0]) + (p0[1] - p0[1]) + (p0[2] - p0[2]) + (p1[0] - p1[0]) + (p1[1] - p1[1]) +
+                  (p1[2] - p1[2]) + (p2[0] - p2[0]) + (p2[1] - p2[1]) + (p2[2] - p2[2]) ==
+              0.0)) {
+            bad = 1;
+            break;
+        }
+        l0 = GC_MIN(l0, GC_MIN(p0[0], GC_MIN(p1[0], p2[0])));
+        l1 = GC_MIN(l1, GC_MIN(p0[1], GC_MIN(p1[1], p2[1])));
+        l2 = GC_MIN(l2, GC_MIN(p0[2], GC_MIN(p1[2], p2[2])));
+        h0 = GC_MAX(h0, GC_MAX(p0[0], GC_MAX(p1[0], p2[0])));
+        h1 = GC_MAX(h1, GC_MAX(p0[1], GC_MAX(p1[1], p2[1])));
+        h2 = GC_MAX(h2, GC_MAX(p0[2], GC_MAX(p1[2], p2[2])));
+        uint32_t q[3];
+        for (int i = 0; i < 3; ++i) {
+            double u = ((p0[i] + p1[i] + p2[i]) * (1.0 / 3.0) - j->klo[i]) * j->scale[i];
+            u = u > 0.0 ? (u < top ? u : top) : 0.0; /* NaN (an overflow times 0) clamps to 0 */
+            q[i] = (uint32_t)u;
+        }
+        uint64_t code = spread_bits(q[0]) | spread_bits(q[1]) << 1 | spread_bits(q[2]) << 2;
+        j->codes[f] = code << 32 | (uint64_t)(uint32_t)f;
+    }
+    j->lo[0] = l0, j->lo[1] = l1, j->lo[2] = l2;
+    j->hi[0] = h0, j->hi[1] = h1, j->hi[2] = h2;
+    j->bad = bad;
+}
+
+/* One pass over the faces that validates the mesh as gc_check_mesh does, takes
+ * the bounds [vlo, vhi] of the vertices the faces use, and puts the faces in
+ * Morton order of their centroids (order receives the n face indices).
+ *
+ * The codes take 10 bits per axis of the box of every finite vertex, which a
+ * sequential pass over the vertices finds before the faces are read, so that the
+ * faces' vertices are gathered once.  The order only keeps triangles that are
+ * near in space near in memory (1024 cells a side is finer than the grid levels
+ * it serves); a stray unused vertex coarsens it and changes nothing else.  The
+ * sort is an LSD radix sort of (code << 32 | face) words, stable, so equal codes
+ * keep the mesh's order.  On a bad mesh gc_check_mesh names the first fault. */
+static gc_status scan_faces(builder *b, const gc_mesh *mesh, double vlo[3], double vhi[3], uint32_t *order)
+{
+    enum { AXIS_BITS = 10, DIGIT_BITS = 10, BUCKETS = 1 << DIGIT_BITS, PASSES = 3 }; /* 30 code bits */
+    const int64_t n = mesh->n_faces, nv = mesh->n_vertices;
+    size_t bytes = (size_t)(n > 0 ? n : 1) * sizeof(uint64_t);
     gc_status st;
-    keyed *a = scratch_alloc(b, bytes, "the triangle order", &st);
-    keyed *tmp = a ? scratch_alloc(b, bytes, "the triangle order", &st) : NULL;
+    uint64_t *a = scratch_alloc(b, bytes, "the triangle order", &st);
+    uint64_t *tmp = a ? scratch_alloc(b, bytes, "the triangle order", &st) : NULL;
     if (!tmp) {
         if (a) {
             scratch_free(b, a, bytes);
         }
         return st;
     }
-    const double scale = (double)(1u << 21) - 1.0;
-    for (int64_t f = 0; f < n; ++f) {
-        uint64_t q[3];
-        for (int i = 0; i < 3; ++i) {
-            double c = (mesh->vertices[3 * mesh->faces[3 * f] + i] + mesh->vertices[3 * mesh->faces[3 * f + 1] + i] +
-                        mesh->vertices[3 * mesh->faces[3 * f + 2] + i]) /
-                       3.0;
-            double u = (c - lo[i]) / (hi[i] - lo[i]) * scale;
-            u = u > 0.0 ? (u < scale ? u : scale) : 0.0;
-            q[i] = (uint64_t)u;
+    const double *v = mesh->vertices;
+    double klo[3] = {INFINITY, INFINITY, INFINITY}, khi[3] = {-INFINITY, -INFINITY, -INFINITY};
+    for (int64_t k = 0; k < nv; ++k) {
+        const double *p = v + 3 * k;
+        if ((p[0] - p[0]) + (p[1] - p[1]) + (p[2] - p[2]) == 0.0) { /* finite */
+            for (int i = 0; i < 3; ++i) {
+                klo[i] = GC_MIN(klo[i], p[i]);
+                khi[i] = GC_MAX(khi[i], p[i]);
+            }
         }
-        a[f].key = spread_bits(q[0]) | spread_bits(q[1]) << 1 | spread_bits(q[2]) << 2;
-        a[f].index = (uint32_t)f;
-        a[f].pad = 0;
     }
-    enum { DIGIT_BITS = 11, BUCKETS = 1 << DIGIT_BITS, PASSES = 6 }; /* 66 >= 63 key bits */
-    static const int digit_mask = BUCKETS - 1;
+    const double top = (double)((1u << AXIS_BITS) - 1);
+    double scale[3];
+    for (int i = 0; i < 3; ++i) { /* 0 for a flat, empty or overflowing extent: one code along it */
+        const double e = khi[i] - klo[i];
+        scale[i] = e > 0.0 && isfinite(e) ? top / e : 0.0;
+        klo[i] = isfinite(klo[i]) ? klo[i] : 0.0;
+    }
+    scan_job jobs[GC_MAX_THREADS];
+    const int parts = parts_for(b, n);
+    for (int k = 0; k < parts; ++k) {
+        scan_job *j = &jobs[k];
+        j->mesh = mesh;
+        j->f0 = part_start(n, k, parts, 1);
+        j->f1 = part_start(n, k + 1, parts, 1);
+        j->top = top;
+        for (int i = 0; i < 3; ++i) {
+            j->klo[i] = klo[i];
+            j->scale[i] = scale[i];
+        }
+        j->codes = a;
+    }
+    run_parts(scan_part, jobs, sizeof *jobs, parts);
+    int bad = 0;
+    for (int i = 0; i < 3; ++i) {
+        vlo[i] = INFINITY;
+        vhi[i] = -INFINITY;
+    }
+    for (int k = 0; k < parts; ++k) {
+        bad |= jobs[k].bad;
+        for (int i = 0; i < 3; ++i) {
+            vlo[i] = GC_MIN(vlo[i], jobs[k].lo[i]);
+            vhi[i] = GC_MAX(vhi[i], jobs[k].hi[i]);
+        }
+    }
+    if (bad) {
+        scratch_free(b, a, bytes);
+        scratch_free(b, tmp, bytes);
+        st = gc_check_mesh(mesh, 0, NULL, NULL, b->err);
+        if (st == GC_OK) { /* cannot happen: the two passes test the same conditions */
+            gc_set_error(b->err, "the mesh has a face with a vertex index out of range or a vertex that is not finite");
+            st = GC_ERR_ARGUMENT;
+        }
+        return st;
+    }
     for (int pass = 0; pass < PASSES; ++pass) {
-        int64_t count[BUCKETS + 1];
+        uint32_t count[BUCKETS + 1];
         memset(count, 0, sizeof count);
-        const int shift = pass * DIGIT_BITS;
+        const int shift = 32 + pass * DIGIT_BITS;
         for (int64_t k = 0; k < n; ++k) {
-            count[((a[k].key >> shift) & (uint64_t)digit_mask) + 1]++;
+            count[((a[k] >> shift) & (BUCKETS - 1)) + 1]++;
         }
         for (int d = 0; d < BUCKETS; ++d) {
             count[d + 1] += count[d];
         }
         for (int64_t k = 0; k < n; ++k) {
-            tmp[count[(a[k].key >> shift) & (uint64_t)digit_mask]++] = a[k];
+            tmp[count[(a[k] >> shift) & (BUCKETS - 1)]++] = a[k];
         }
-        keyed *sw = a;
+        uint64_t *sw = a;
         a = tmp;
         tmp = sw;
     }
     for (int64_t k = 0; k < n; ++k) {
-        order[k] = a[k].index;
+        order[k] = (uint32_t)a[k];
     }
     scratch_free(b, a, bytes);
     scratch_free(b, tmp, bytes);
@@ -580,6 +855,10 @@ static gc_status check_params(const gc_build_params *p, char *err)
             return GC_ERR_ARGUMENT;
         }
     }
+    if (p->threads < 0) {
+        gc_set_error(err, "threads must be 0 or more (0 and 1: the calling thread only), not %d", p->threads);
+        return GC_ERR_ARGUMENT;
+    }
     if (p->rule_max_axis < 1) {
         gc_set_error(err, "rule_max_axis must be at least 1");
         return GC_ERR_ARGUMENT;
@@ -595,6 +874,53 @@ static gc_status check_params(const gc_build_params *p, char *err)
     return GC_OK;
 }
 
+/* The stored triangles: copies of the faces in Morton order, and their face ids. */
+typedef struct {
+    const gc_mesh *mesh;
+    gc_grid *g;
+    uint32_t *prims; /* in: the faces in order; out: the stored index of each */
+    int64_t k0, k1;
+} copy_job;
+
+static void copy_part(void *arg)
+{
+    copy_job *j = arg;
+    const gc_mesh *mesh = j->mesh;
+    gc_grid *g = j->g;
+    for (int64_t k = j->k0; k < j->k1; ++k) {
+        const int64_t *fv = mesh->faces + 3 * (int64_t)j->prims[k];
+        memcpy(g->tris[k].v0, mesh->vertices + 3 * fv[0], 3 * sizeof(double));
+        memcpy(g->tris[k].v1, mesh->vertices + 3 * fv[1], 3 * sizeof(double));
+        memcpy(g->tris[k].v2, mesh->vertices + 3 * fv[2], 3 * sizeof(double));
+        g->tri_id[k] = (int32_t)j->prims[k];
+        j->prims[k] = (uint32_t)k; /* the top level indexes the stored (sorted) triangles */
+    }
+}
+
+/* Each reference's triangle laid beside it: references [k0, k1), whole packs. */
+typedef struct {
+    gc_grid *g;
+    int64_t k0, k1;
+} fill_job;
+
+static void fill_part(void *arg)
+{
+    fill_job *j = arg;
+    gc_grid *g = j->g;
+    for (int64_t k = j->k0; k < j->k1; ++k) {
+        const gc_tri *t = &g->tris[g->refs[k]];
+        gc_pack *pk = &g->ref_tris[k / GC_LANES];
+        const int lane = (int)(k % GC_LANES);
+        for (int i = 0; i < 3; ++i) {
+            pk->c[i][lane] = t->v0[i];
+            pk->c[3 + i][lane] = t->v1[i];
+            pk->c[6 + i][lane] = t->v2[i];
+        }
+    }
+}
+
+static gc_status build_grid(builder *b, const gc_mesh *mesh, gc_grid **out);
+
 gc_status gc_grid_build(const gc_mesh *mesh, const gc_build_params *params, gc_grid **out, char *err)
 {
     *out = NULL;
@@ -603,58 +929,96 @@ gc_status gc_grid_build(const gc_mesh *mesh, const gc_build_params *params, gc_g
     if (st != GC_OK) {
         return st;
     }
-    st = gc_check_mesh(mesh, p.has_box, err);
+    st = gc_check_mesh_shape(mesh, p.has_box, err);
     if (st != GC_OK) {
         return st;
     }
-    double lo[3], hi[3];
-    if (p.has_box) {
-        for (int i = 0; i < 3; ++i) {
-            lo[i] = p.box_lo[i];
-            hi[i] = p.box_hi[i];
-        }
-        for (int64_t k = 0; k < 3 * mesh->n_faces; ++k) {
-            const double *v = mesh->vertices + 3 * mesh->faces[k];
-            for (int i = 0; i < 3; ++i) {
-                if (!(v[i] >= lo[i] && v[i] <= hi[i])) {
-                    gc_set_error(err, "vertex %lld lies outside the given grid box",
-                                 (long long)mesh->faces[k]);
-                    return GC_ERR_ARGUMENT;
-                }
-            }
-        }
-    } else {
-        gc_mesh_box_checked(mesh, lo, hi); /* gc_check_mesh refused a mesh without faces */
-    }
-    /* Cell sizes and cell indices divide by the extent: an extent that overflows to
-     * inf would turn them into NaN and the cell index into anything. */
-    for (int i = 0; i < 3; ++i) {
-        if (!isfinite(hi[i] - lo[i])) {
-            gc_set_error(err, "the grid box is too wide for double precision: its extent on axis %d overflows", i);
-            return GC_ERR_ARGUMENT;
-        }
-    }
-
     builder b;
     memset(&b, 0, sizeof b);
     b.limit = p.memory_limit_bytes ? p.memory_limit_bytes : GC_DEFAULT_MEMORY_LIMIT_BYTES;
     b.p = &p;
     b.err = err;
+    b.threads = p.threads < 1 ? 1 : (p.threads > GC_MAX_THREADS ? GC_MAX_THREADS : p.threads);
+#ifndef GC_NO_THREADS
+    if (b.threads > 1 && pthread_mutex_init(&b.lock, NULL) != 0) {
+        b.threads = 1; /* no lock, no parts: one thread builds the same grid */
+    }
+#else
+    b.threads = 1;
+#endif
+    st = build_grid(&b, mesh, out);
+#ifndef GC_NO_THREADS
+    if (b.threads > 1) {
+        pthread_mutex_destroy(&b.lock);
+    }
+#endif
+    return st;
+}
+
+static gc_status build_grid(builder *b, const gc_mesh *mesh, gc_grid **out)
+{
+    const gc_build_params *p = b->p;
+    char *err = b->err;
+    gc_status st;
     gc_grid *g = calloc(1, sizeof *g);
     if (!g) {
         gc_set_error(err, "out of memory");
         return GC_ERR_NO_MEMORY;
     }
-    b.g = g;
-    g->intersector = p.intersector;
-    g->mailbox = p.mailbox != 0;
+    b->g = g;
+    g->intersector = p->intersector;
+    g->mailbox = p->mailbox != 0;
     g->n_tris = mesh->n_faces;
 
-    st = check_resolution(&b, p.resolution, 0);
+    /* the faces checked, their used vertices' bounds and their Morton order */
+    double lo[3], hi[3], vlo[3] = {0.0, 0.0, 0.0}, vhi[3] = {0.0, 0.0, 0.0};
     uint32_t *prims = NULL;
     size_t prims_bytes = (size_t)(g->n_tris > 0 ? g->n_tris : 1) * sizeof(uint32_t);
+    prims = scratch_alloc(b, prims_bytes, "the triangle list", &st);
+    if (st == GC_OK && g->n_tris > 0) {
+        st = scan_faces(b, mesh, vlo, vhi, prims);
+    }
+    if (st == GC_OK && p->has_box) {
+        for (int i = 0; i < 3; ++i) {
+            lo[i] = p->box_lo[i];
+            hi[i] = p->box_hi[i];
+        }
+        /* the used vertices lie in the box if their bounds do; find the first that does not */
+        int outside = 0;
+        for (int i = 0; i < 3; ++i) {
+            outside |= !(vlo[i] >= lo[i] && vhi[i] <= hi[i]);
+        }
+        for (int64_t k = 0; outside && st == GC_OK && k < 3 * mesh->n_faces; ++k) {
+            const double *v = mesh->vertices + 3 * mesh->faces[k];
+            for (int i = 0; i < 3; ++i) {
+                if (!(v[i] >= lo[i] && v[i] <= hi[i])) {
+                    gc_set_error(err, "vertex %lld lies outside the given grid box",
+                                 (long long)mesh->faces[k]);
+                    st = GC_ERR_ARGUMENT;
+                    break;
+                }
+            }
+        }
+    } else if (st == GC_OK) { /* gc_check_mesh_shape refused a mesh without faces */
+        for (int i = 0; i < 3; ++i) {
+            lo[i] = vlo[i];
+            hi[i] = vhi[i];
+        }
+        gc_widen_box(lo, hi);
+    }
+    /* Cell sizes and cell indices divide by the extent: an extent that overflows to
+     * inf would turn them into NaN and the cell index into anything. */
+    for (int i = 0; i < 3 && st == GC_OK; ++i) {
+        if (!isfinite(hi[i] - lo[i])) {
+            gc_set_error(err, "the grid box is too wide for double precision: its extent on axis %d overflows", i);
+            st = GC_ERR_ARGUMENT;
+        }
+    }
     if (st == GC_OK) {
-        st = check_memory(&b, 0, "the triangles"); /* grid_bytes counts them already */
+        st = check_resolution(b, p->resolution, 0);
+    }
+    if (st == GC_OK) {
+        st = check_memory(b, 0, "the triangles"); /* grid_bytes counts them already */
     }
     if (st == GC_OK) {
         size_t n_alloc = (size_t)(g->n_tris > 0 ? g->n_tris : 1);
@@ -666,26 +1030,21 @@ gc_status gc_grid_build(const gc_mesh *mesh, const gc_build_params *params, gc_g
         }
     }
     if (st == GC_OK) {
-        prims = scratch_alloc(&b, prims_bytes, "the triangle list", &st);
-    }
-    if (st == GC_OK) {
-        st = morton_order(&b, mesh, lo, hi, prims);
-        if (st != GC_OK) {
-            scratch_free(&b, prims, prims_bytes);
+        copy_job jobs[GC_MAX_THREADS];
+        const int parts = parts_for(b, g->n_tris);
+        for (int k = 0; k < parts; ++k) {
+            jobs[k].mesh = mesh;
+            jobs[k].g = g;
+            jobs[k].prims = prims;
+            jobs[k].k0 = part_start(g->n_tris, k, parts, 1);
+            jobs[k].k1 = part_start(g->n_tris, k + 1, parts, 1);
         }
-    }
-    if (st == GC_OK) {
-        for (int64_t k = 0; k < g->n_tris; ++k) {
-            const int64_t *fv = mesh->faces + 3 * (int64_t)prims[k];
-            memcpy(g->tris[k].v0, mesh->vertices + 3 * fv[0], 3 * sizeof(double));
-            memcpy(g->tris[k].v1, mesh->vertices + 3 * fv[1], 3 * sizeof(double));
-            memcpy(g->tris[k].v2, mesh->vertices + 3 * fv[2], 3 * sizeof(double));
-            g->tri_id[k] = (int32_t)prims[k];
-            prims[k] = (uint32_t)k; /* the top level indexes the stored (sorted) triangles */
-        }
+        run_parts(copy_part, jobs, sizeof *jobs, parts);
         uint32_t top;
-        st = build_node(&b, prims, g->n_tris, lo, hi, p.resolution, 0, &top);
-        scratch_free(&b, prims, prims_bytes);
+        st = build_node(b, prims, g->n_tris, lo, hi, p->resolution, 0, &top);
+    }
+    if (prims) {
+        scratch_free(b, prims, prims_bytes);
     }
     if (st != GC_OK) {
         gc_grid_free(g);
@@ -697,9 +1056,9 @@ gc_status gc_grid_build(const gc_mesh *mesh, const gc_build_params *params, gc_g
         if (r) {
             g->refs = r;
         }
-        b.cap_refs = g->n_refs;
+        b->cap_refs = g->n_refs;
     }
-    st = check_memory(&b, GC_PACK_BYTES(g->n_refs), "the per-reference triangles");
+    st = check_memory(b, GC_PACK_BYTES(g->n_refs), "the per-reference triangles");
     if (st == GC_OK) {
         g->ref_tris = calloc((size_t)GC_PACK_BYTES(g->n_refs > 0 ? g->n_refs : 1), 1);
         if (!g->ref_tris) {
@@ -711,15 +1070,15 @@ gc_status gc_grid_build(const gc_mesh *mesh, const gc_build_params *params, gc_g
         gc_grid_free(g);
         return st;
     }
-    for (int64_t k = 0; k < g->n_refs; ++k) {
-        const gc_tri *t = &g->tris[g->refs[k]];
-        gc_pack *pk = &g->ref_tris[k / GC_LANES];
-        const int lane = (int)(k % GC_LANES);
-        for (int i = 0; i < 3; ++i) {
-            pk->c[i][lane] = t->v0[i];
-            pk->c[3 + i][lane] = t->v1[i];
-            pk->c[6 + i][lane] = t->v2[i];
+    {
+        fill_job jobs[GC_MAX_THREADS];
+        const int parts = parts_for(b, g->n_refs);
+        for (int k = 0; k < parts; ++k) {
+            jobs[k].g = g;
+            jobs[k].k0 = part_start(g->n_refs, k, parts, GC_LANES);
+            jobs[k].k1 = part_start(g->n_refs, k + 1, parts, GC_LANES);
         }
+        run_parts(fill_part, jobs, sizeof *jobs, parts);
     }
     free(g->tris);
     g->tris = NULL;

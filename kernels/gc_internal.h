@@ -146,11 +146,13 @@ GC_INLINE void gc_ray_prepare(gc_ray *r, const double *o, const double *d)
     r->sz = 1.0 / r->d[kz];
 }
 
-/* Validate a mesh: positive counts, indices in range, finite vertices used by faces. */
-gc_status gc_check_mesh(const gc_mesh *mesh, int allow_empty, char *err);
+/* Validate a mesh: positive counts, indices in range, finite vertices used by faces.
+ * With lo and hi (both or neither may be NULL), the same pass returns the bounds
+ * of the vertices that faces use (not widened; untouched for a mesh without faces). */
+gc_status gc_check_mesh(const gc_mesh *mesh, int allow_empty, double lo[3], double hi[3], char *err);
 
-/* gc_mesh_box for a mesh gc_check_mesh has accepted. */
-void gc_mesh_box_checked(const gc_mesh *mesh, double lo[3], double hi[3]);
+/* The first part of gc_check_mesh: the counts and pointers (every face is left unread). */
+gc_status gc_check_mesh_shape(const gc_mesh *mesh, int allow_empty, char *err);
 
 /* Validate rays: finite origins, finite non-zero directions. */
 gc_status gc_check_rays(int64_t n, const double *origins, const double *directions, char *err);

@@ -46,6 +46,7 @@ gc_build_params gc_build_params_default(void)
     }
     p.subgrid_resolutions = NULL;
     p.rule_max_axis = 256;
+    p.threads = 1;
     return p;
 }
 
@@ -68,7 +69,7 @@ void gc_widen_box(double lo[3], double hi[3])
     }
 }
 
-gc_status gc_check_mesh(const gc_mesh *mesh, int allow_empty, char *err)
+gc_status gc_check_mesh_shape(const gc_mesh *mesh, int allow_empty, char *err)
 {
     if (!mesh) {
         gc_set_error(err, "no mesh given");
@@ -93,8 +94,20 @@ gc_status gc_check_mesh(const gc_mesh *mesh, int allow_empty, char *err)
         gc_set_error(err, "%lld faces exceed the limit of %d", (long long)mesh->n_faces, INT32_MAX);
         return GC_ERR_OVERFLOW;
     }
+    return GC_OK;
+}
+
+gc_status gc_check_mesh(const gc_mesh *mesh, int allow_empty, double lo[3], double hi[3], char *err)
+{
+    gc_status st = gc_check_mesh_shape(mesh, allow_empty, err);
+    if (st != GC_OK || mesh->n_faces == 0) {
+        return st;
+    }
+    double l0 = INFINITY, l1 = INFINITY, l2 = INFINITY;
+    double h0 = -INFINITY, h1 = -INFINITY, h2 = -INFINITY;
+    const int64_t *f = mesh->faces;
     for (int64_t k = 0; k < 3 * mesh->n_faces; ++k) {
-        int64_t v = mesh->faces[k];
+        int64_t v = f[k];
         if (v < 0 || v >= mesh->n_vertices) {
             gc_set_error(err, "face %lld refers to vertex %lld, outside [0, %lld)", (long long)(k / 3),
                          (long long)v, (long long)mesh->n_vertices);
@@ -107,38 +120,28 @@ gc_status gc_check_mesh(const gc_mesh *mesh, int allow_empty, char *err)
                          (long long)(k / 3));
             return GC_ERR_ARGUMENT;
         }
+        l0 = GC_MIN(l0, p[0]);
+        l1 = GC_MIN(l1, p[1]);
+        l2 = GC_MIN(l2, p[2]);
+        h0 = GC_MAX(h0, p[0]);
+        h1 = GC_MAX(h1, p[1]);
+        h2 = GC_MAX(h2, p[2]);
+    }
+    if (lo && hi) { /* the bounds of the vertices that faces use, in the same pass */
+        lo[0] = l0, lo[1] = l1, lo[2] = l2;
+        hi[0] = h0, hi[1] = h1, hi[2] = h2;
     }
     return GC_OK;
 }
 
 gc_status gc_mesh_box(const gc_mesh *mesh, double lo[3], double hi[3], char *err)
 {
-    gc_status st = gc_check_mesh(mesh, 0, err);
+    gc_status st = gc_check_mesh(mesh, 0, lo, hi, err);
     if (st != GC_OK) {
         return st;
     }
-    gc_mesh_box_checked(mesh, lo, hi);
-    return GC_OK;
-}
-
-void gc_mesh_box_checked(const gc_mesh *mesh, double lo[3], double hi[3])
-{
-    double l0 = INFINITY, l1 = INFINITY, l2 = INFINITY;
-    double h0 = -INFINITY, h1 = -INFINITY, h2 = -INFINITY;
-    /* only vertices that faces use define the box */
-    const int64_t *f = mesh->faces;
-    for (int64_t k = 0; k < 3 * mesh->n_faces; ++k) {
-        const double *v = mesh->vertices + 3 * f[k];
-        l0 = GC_MIN(l0, v[0]);
-        l1 = GC_MIN(l1, v[1]);
-        l2 = GC_MIN(l2, v[2]);
-        h0 = GC_MAX(h0, v[0]);
-        h1 = GC_MAX(h1, v[1]);
-        h2 = GC_MAX(h2, v[2]);
-    }
-    lo[0] = l0, lo[1] = l1, lo[2] = l2;
-    hi[0] = h0, hi[1] = h1, hi[2] = h2;
     gc_widen_box(lo, hi);
+    return GC_OK;
 }
 
 void gc_grid_free(gc_grid *grid)

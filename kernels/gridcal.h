@@ -39,6 +39,8 @@ extern "C" {
 #define GC_MAX_CELLS ((uint64_t)UINT32_MAX - 1u)
 /* Largest number of triangle references over all cells of one grid. */
 #define GC_MAX_REFS ((uint64_t)UINT32_MAX - 1u)
+/* Most threads a build uses (gc_build_params.threads above it uses this many). */
+#define GC_MAX_THREADS 64
 /* Default limit on the memory one grid may take (bytes); 0 in gc_build_params selects it. */
 #define GC_DEFAULT_MEMORY_LIMIT_BYTES ((uint64_t)8u << 30)
 /* Length of the error buffers the API fills. */
@@ -97,6 +99,10 @@ typedef struct {
     const int32_t *subgrid_resolutions;
     /* Largest per-axis resolution the rule may produce for a subgrid. */
     int32_t rule_max_axis;
+    /* Threads the build may use (0 or 1: the calling thread only; at most
+     * GC_MAX_THREADS).  The passes over the triangles and the references are split
+     * into this many parts; the grid is the same, byte for byte, for any number. */
+    int threads;
 } gc_build_params;
 
 typedef struct gc_grid gc_grid;

@@ -377,6 +377,11 @@ BAD_BUILD_OPTIONS = [
     ("mailbox 1", dict(mailbox=1), r"^mailbox must be True or False, got 1$"),
     ("mailbox None", dict(mailbox=None), r"^mailbox must be True or False, got None$"),
     ("insertion list", dict(insertion=["exact"]), r"unknown insertion \['exact'\]; choose one of exact, bounds"),
+    ("threads 0", dict(threads=0), r"^threads must be a whole number from 1 to 64, got 0$"),
+    ("threads 65", dict(threads=65), r"^threads must be a whole number from 1 to 64, got 65$"),
+    ("threads fractional", dict(threads=1.5), r"^threads must be a whole number from 1 to 64, got 1.5$"),
+    ("threads True", dict(threads=True), r"^threads must be a whole number from 1 to 64, got True$"),
+    ("threads None", dict(threads=None), r"^threads must be a whole number from 1 to 64, got None$"),
 ]
 
 
@@ -386,6 +391,28 @@ def test_uniform_rejects_bad_options(scene, label, kwargs, pattern):
         Grid.uniform(scene, (2, 2, 2), **kwargs)
     with pytest.raises(ValueError, match=pattern):
         Grid.nested(scene, 2, (2, 2, 2), **kwargs)
+
+
+@pytest.mark.parametrize("levels", [1, 2])
+def test_build_threads_give_the_same_grid(levels):
+    """The build's parts (2 and 3 threads, 40,000 triangles: several parts) join into the
+    grid one thread builds: same counts per cell and same first hits (the C tests
+    compare the grids byte for byte)."""
+    v, f = jittered_closed_mesh(levels, frequency=45)  # 40,500 triangles
+    scene = Scene(v, f, name="jittered")
+    rng = np.random.default_rng(levels)
+    o = rng.normal(size=(3000, 3)) * 3.0
+    d = rng.uniform(-0.5, 0.5, size=(3000, 3)) - o
+    grids = [Grid.nested(scene, levels, (23, 19, 31), threads=t) for t in (1, 2, 3)]
+    first = grids[0]
+    t0, p0 = first.intersect(o, d)
+    assert np.isfinite(t0).sum() > 1000
+    for g in grids[1:]:
+        assert g.info == first.info
+        np.testing.assert_array_equal(g.top_counts(), first.top_counts())
+        t, p = g.intersect(o, d)
+        np.testing.assert_array_equal(t, t0)
+        np.testing.assert_array_equal(p, p0)
 
 
 def test_grid_rejects_a_non_scene():

@@ -558,11 +558,109 @@ static void test_prepared_overlap(void)
           (long long)overlaps, (long long)n);
 }
 
+/* The same grid, byte for byte, for any number of build threads: uniform and
+ * nested, exact and bounds insertion, a compact soup, a long soup (whose pair
+ * buffers grow inside the parts) and a sphere, each large enough for several
+ * parts.  Also: a negative thread count is refused. */
+static int grids_identical(const gc_grid *a, const gc_grid *b)
+{
+    return a->n_tris == b->n_tris && a->n_nodes == b->n_nodes && a->n_cells == b->n_cells &&
+           a->n_refs == b->n_refs && a->levels == b->levels &&
+           !memcmp(a->tri_id, b->tri_id, (size_t)a->n_tris * sizeof(int32_t)) &&
+           !memcmp(a->nodes, b->nodes, (size_t)a->n_nodes * sizeof(gc_node)) &&
+           !memcmp(a->cells, b->cells, (size_t)a->n_cells * sizeof(gc_cell)) &&
+           !memcmp(a->refs, b->refs, (size_t)a->n_refs * sizeof(uint32_t)) &&
+           !memcmp(a->ref_tris, b->ref_tris, (size_t)GC_PACK_BYTES(a->n_refs));
+}
+
+static void test_threads_same_grid(void)
+{
+    mesh_buf meshes[3] = {random_soup(70001, 0.02, 21), random_soup(40000, 0.3, 22),
+                          uv_sphere(160, 240, 0.5, 0.05, 23)};
+    const char *names[3] = {"compact soup", "long soup", "sphere"};
+    char err[GC_ERROR_LEN];
+    for (int mi = 0; mi < 3; ++mi) {
+        gc_mesh mesh = as_mesh(&meshes[mi]);
+        for (int variant = 0; variant < 3; ++variant) {
+            gc_build_params p = gc_build_params_default();
+            p.resolution[0] = 37, p.resolution[1] = 41, p.resolution[2] = 29;
+            p.insertion = variant == 1 ? GC_INSERT_BOUNDS : GC_INSERT_EXACT;
+            p.levels = variant == 2 ? 2 : 1;
+            p.level_exponent[1] = 3.0 / 3.0;
+            gc_grid *one = NULL;
+            p.threads = 1;
+            CHECK(gc_grid_build(&mesh, &p, &one, err) == GC_OK, "%s: one thread: %s", names[mi], err);
+            for (int threads = 2; threads <= 5 && one; threads += 3) {
+                gc_grid *many = NULL;
+                p.threads = threads;
+                CHECK(gc_grid_build(&mesh, &p, &many, err) == GC_OK, "%s: %d threads: %s", names[mi],
+                      threads, err);
+                CHECK(many && grids_identical(one, many), "%s variant %d: %d threads built another grid",
+                      names[mi], variant, threads);
+                gc_grid_free(many);
+            }
+            gc_grid_free(one);
+        }
+        /* a bad index in a later part is named as one thread names it */
+        const int64_t bad_face = meshes[mi].nf - 7, keep = meshes[mi].f[3 * bad_face + 1];
+        meshes[mi].f[3 * bad_face + 1] = meshes[mi].nv + 3;
+        char expect[GC_ERROR_LEN], got[GC_ERROR_LEN];
+        gc_build_params p = gc_build_params_default();
+        gc_grid *g = NULL;
+        double blo[3], bhi[3];
+        CHECK(gc_mesh_box(&mesh, blo, bhi, expect) == GC_ERR_ARGUMENT,
+              "%s: gc_mesh_box accepted a bad index", names[mi]);
+        p.threads = 2;
+        CHECK(gc_grid_build(&mesh, &p, &g, got) == GC_ERR_ARGUMENT && g == NULL && !strcmp(got, expect),
+              "%s: a bad index in the second part: '%s', not '%s'", names[mi], got, expect);
+        meshes[mi].f[3 * bad_face + 1] = keep;
+    }
+    gc_build_params p = gc_build_params_default();
+    gc_mesh mesh = as_mesh(&meshes[0]);
+    gc_grid *g = (gc_grid *)&err;
+    p.threads = -1;
+    CHECK(gc_grid_build(&mesh, &p, &g, err) == GC_ERR_ARGUMENT && g == NULL && strstr(err, "threads"),
+          "negative threads not refused: %s", err);
+    for (int mi = 0; mi < 3; ++mi) {
+        mesh_free(&meshes[mi]);
+    }
+}
+
+/* Vertices no face uses are ignored, even a NaN or a far one (the build's
+ * Morton codes are taken over the box of every finite vertex). */
+static void test_unused_vertices(void)
+{
+    mesh_buf m = random_soup(300, 0.1, 31);
+    mesh_buf x = m;
+    x.nv = m.nv + 2;
+    x.v = malloc((size_t)x.nv * 3 * sizeof(double));
+    memcpy(x.v, m.v, (size_t)m.nv * 3 * sizeof(double));
+    for (int i = 0; i < 3; ++i) {
+        x.v[3 * m.nv + i] = NAN;
+        x.v[3 * m.nv + 3 + i] = 1e30;
+    }
+    const int64_t n = 1000;
+    double *o = malloc((size_t)n * 3 * sizeof(double)), *d = malloc((size_t)n * 3 * sizeof(double));
+    double lo[3], hi[3];
+    char err[GC_ERROR_LEN];
+    gc_mesh mesh = as_mesh(&x);
+    CHECK(gc_mesh_box(&mesh, lo, hi, err) == GC_OK && hi[0] < 2.0, "unused vertices changed the box: %s",
+          err);
+    random_rays(n, lo, hi, 32, o, d);
+    gc_build_params p = gc_build_params_default();
+    p.resolution[0] = p.resolution[1] = p.resolution[2] = 9;
+    compare_with_brute(&x, &p, n, o, d, "unused NaN and far vertices");
+    free(o), free(d), free(x.v);
+    mesh_free(&m);
+}
+
 int main(void)
 {
     test_prepared_overlap();
     test_mesh_sums();
     test_refusals();
+    test_threads_same_grid();
+    test_unused_vertices();
     test_grids_match_brute_force();
     test_axis_parallel_and_cell_faces();
     test_watertight();
