@@ -582,6 +582,14 @@ static gc_status build_node(builder *b, const uint32_t *prims, int64_t n_prims, 
     for (int k = 0; k < parts; ++k) {
         n_pairs += jobs[k].n;
     }
+    if ((uint64_t)n_pairs > GC_MAX_REFS) { /* each part stayed under it, their sum did not */
+        gc_set_error(b->err,
+                     "more than %llu triangle references in one grid level: "
+                     "the resolution is too fine for 32-bit reference offsets",
+                     (unsigned long long)GC_MAX_REFS);
+        free_pair_parts(b, jobs, parts);
+        return GC_ERR_OVERFLOW;
+    }
     size_t off_bytes = (size_t)(ncell + 1) * sizeof(uint32_t);
     size_t sorted_bytes = (size_t)(n_pairs > 0 ? n_pairs : 1) * sizeof(uint32_t);
     uint32_t *off = scratch_alloc(b, off_bytes, "the cell offsets", &st);
@@ -615,6 +623,20 @@ static gc_status build_node(builder *b, const uint32_t *prims, int64_t n_prims, 
     off[0] = 0;
     free_pair_parts(b, jobs, parts);
 
+    if (depth + 1 >= b->p->levels && !g->refs) {
+        /* the top level of a uniform grid: the sorted references are the grid's */
+        g->refs = sorted;
+        b->scratch -= sorted_bytes;
+        b->cap_refs = (int64_t)(sorted_bytes / sizeof(uint32_t));
+        for (int64_t c = 0; c < ncell; ++c) {
+            g->cells[first + c].begin = off[c];
+            g->cells[first + c].count = off[c + 1] - off[c];
+        }
+        g->n_refs = n_pairs;
+        scratch_free(b, off, off_bytes);
+        *node_out = node_index;
+        return GC_OK;
+    }
     /* leaf cells take their references; crowded cells get a subgrid */
     for (int64_t c = 0; c < ncell && st == GC_OK; ++c) {
         uint32_t count = off[c + 1] - off[c];
