@@ -388,7 +388,11 @@ def calibrate_loops(
 ) -> tuple[int | None, list[str]]:
     """Smallest power-of-two loop count whose value lasts >= min_value_ns.
 
-    Doubles ``loops`` from 1 (pyperf's calibration). Returns (loops, notes):
+    One call is made and discarded first: the first call of a configuration finds
+    its data out of the caches (other configurations ran since it was built) and can
+    last many times a warm call, which would settle on a loop count too small, and
+    then every value of the configuration would be one cold call.  Then doubles
+    ``loops`` from 1 (pyperf's calibration). Returns (loops, notes):
     ``loops`` is None when ``stop()`` turned true before calibration finished;
     ``notes`` reports a cap hit (loops = max_loops with a value still short).
     """
@@ -396,6 +400,9 @@ def calibrate_loops(
         raise ValueError(f"min_value_ns must be > 0, got {min_value_ns}")
     if max_loops < 1:
         raise ValueError(f"max_loops must be >= 1, got {max_loops}")
+    if stop is not None and stop():
+        return None, []
+    _call(name, run, 1)  # the cold first call
     loops = 1
     while True:
         if stop is not None and stop():

@@ -89,8 +89,20 @@ def test_calibrate_loops_is_smallest_power_of_two_reaching_minimum(i):
     assert loops & (loops - 1) == 0  # power of two
     assert int(loops * ns) >= MIN_VALUE_NS
     assert loops == 1 or int(loops // 2 * ns) < MIN_VALUE_NS
-    # doubling from 1: one call per power of two up to loops
-    assert [l for _, l in run.log] == [2**k for k in range(loops.bit_length())]
+    # one discarded call, then doubling from 1: one call per power of two up to loops
+    assert [l for _, l in run.log] == [1] + [2**k for k in range(loops.bit_length())]
+
+
+@pytest.mark.parametrize("i", range(4))
+def test_a_cold_first_call_does_not_set_the_loop_count(i):
+    """A first call so slow (the configuration's data out of the caches) that it alone
+    lasts the minimum value is discarded: the loop count is the one warm calls need."""
+    rng = np.random.default_rng(1050 + i)
+    ns = float(rng.uniform(2_000.0, 20_000.0))
+    slow = float(rng.uniform(1.2, 4.0)) * MIN_VALUE_NS / ns  # the cold call alone reaches the minimum
+    loops_cold, _ = calibrate_loops(FakeRun("a", ns, slow_first=1, slow_factor=slow), min_value_ns=MIN_VALUE_NS)
+    loops_warm, _ = calibrate_loops(FakeRun("b", ns), min_value_ns=MIN_VALUE_NS)
+    assert loops_warm > 1 and loops_cold == loops_warm
 
 
 def test_measure_values_last_at_least_min_value():
@@ -267,8 +279,8 @@ def test_should_stop_sees_partial_results():
 def test_interrupt_keeps_partial_data_and_resume_completes():
     log = []
     runs = {n: FakeRun(n, log=log) for n in "abc"}
-    # calibration of NS_PER_LOOP to 100 us takes 8 calls (loops 1..128)
-    runs["b"].fail_at = 8 + 1 + 4  # calibration, warm-up, then the 4th value of b
+    # calibration of NS_PER_LOOP to 100 us takes 9 calls (a discarded one, loops 1..128)
+    runs["b"].fail_at = 9 + 1 + 4  # calibration, warm-up, then the 4th value of b
     into = {}
     with pytest.raises(MeasurementInterrupted) as info:
         measure(runs, rng=np.random.default_rng(2200), rounds=6, warmups=1,
