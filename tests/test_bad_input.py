@@ -302,6 +302,8 @@ CASES: list[Case] = [
         lambda d: Grid.uniform(_tetra(), (1e300, 1, 1)), "an axis exceeds 2^31 - 1 cells"),
     api(GRID, "grid over the memory limit", "Grid.uniform(scene, (64, 64, 64), memory_limit=1000)",
         lambda d: Grid.uniform(_tetra(), (64, 64, 64), memory_limit=1000), "over the memory limit"),
+    api(GRID, "no build threads", "Grid.uniform(scene, (4, 4, 4), threads=0)",
+        lambda d: Grid.uniform(_tetra(), (4, 4, 4), threads=0), "threads must be a whole number from 1 to 64"),
     api(GRID, "zero levels", "Grid.nested(scene, levels=0)",
         lambda d: Grid.nested(_tetra(), levels=0), "levels must be a whole number from 1"),
     # -- options -------------------------------------------------------------------------------
