@@ -432,6 +432,7 @@ def measure(
     into: MutableMapping[str, Measurement] | None = None,
     timer_resolution_ns: float | None = None,
     clock: Callable[[], float] = time.monotonic,
+    prime: bool = False,
 ) -> dict[str, Measurement]:
     """Time every configuration with calibrated loops, warm-ups and interleaved rounds.
 
@@ -455,6 +456,10 @@ def measure(
     timer_resolution_ns : effective timer resolution for the too-short check;
         measured with :func:`timer_info` when None.
     clock : monotonic clock in seconds used for ``deadline`` (injectable).
+    prime : call a configuration once (one loop, untimed) before each of its values,
+        so that a value starts from the caches as the configuration's own calls leave
+        them, not as the configuration timed before it left them (interleaving makes
+        every value's first loop cold otherwise).
 
     Returns the dict name -> :class:`Measurement` (``into`` when given).
     Raises :class:`MeasurementInterrupted` on KeyboardInterrupt, carrying it.
@@ -517,6 +522,8 @@ def measure(
             if stop():
                 return False
             m = results[name]
+            if prime:
+                _call(name, configs[name], 1)
             elapsed_ns = _call(name, configs[name], m.loops)
             sink.append(elapsed_ns / m.loops)
             done += 1

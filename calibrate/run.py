@@ -43,6 +43,12 @@ STAGE_ROUNDS = 4
 MIN_VALUE_NS = 10_000_000
 #: Warm-up values discarded per configuration and stage.
 WARMUPS = 1
+#: One untimed call of a configuration before each of its values (protocol.measure's prime):
+#: interleaving leaves the previous configuration's data in the caches, and a value's first loop
+#: then waits on memory.  A/B on this host, 2026-12-02, three runs each (docs/calibration.md):
+#: T_mem 2.8 against 3.8-4.5 ns (the cold starts had gone into it), cross-validated error
+#: 4.7-5.5% against 4.6-6.1%, isotropic r's 95% half-width 19-20% against 22-26%.
+PRIME_EACH_VALUE = True
 #: Fraction of in-context configurations held back from the fit to test its predictions.
 HOLDOUT_FRACTION = 0.2
 #: Share of the budget kept for fitting after the last stage (the pooled fit, then one
@@ -341,7 +347,8 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
             status(f"measuring stage {stage}: {len(configs)} configurations to {rounds} values each")
             try:
                 measure(runs, rng=rng, rounds=rounds, warmups=WARMUPS, min_value_ns=MIN_VALUE_NS,
-                        progress=progress, deadline=deadline - FIT_RESERVE_S, into=timings)
+                        progress=progress, deadline=deadline - FIT_RESERVE_S, into=timings,
+                        prime=PRIME_EACH_VALUE)
             except MeasurementInterrupted:
                 _save_partial(part, seed, intersector, configs, timings)
                 raise

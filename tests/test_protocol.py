@@ -105,6 +105,41 @@ def test_a_cold_first_call_does_not_set_the_loop_count(i):
     assert loops_warm > 1 and loops_cold == loops_warm
 
 
+class ColdAfterOthers(FakeRun):
+    """A fake whose first loop after another configuration's call takes ``cold_ns`` more
+    (its data out of the caches); the log shared by all fakes says who ran last."""
+
+    def __init__(self, name, ns_per_loop, cold_ns, log):
+        super().__init__(name, ns_per_loop, log=log)
+        self.cold_ns = cold_ns
+
+    def __call__(self, loops):
+        cold = bool(self.log) and self.log[-1][0] != self.name
+        elapsed, checksum = super().__call__(loops)
+        return elapsed + (int(self.cold_ns) if cold else 0), checksum
+
+
+@pytest.mark.parametrize("i", range(3))
+def test_prime_takes_each_value_warm(i):
+    """Interleaved values start cold: without prime most values carry the planted cold
+    start (spread over their loops); with prime each value is the warm cost exactly."""
+    rng = np.random.default_rng(1150 + i)
+    ns = {n: float(rng.uniform(500.0, 5_000.0)) for n in "abc"}
+    cold = float(rng.uniform(20_000.0, 60_000.0))
+    for prime in (False, True):
+        log = []
+        runs = {n: ColdAfterOthers(n, ns[n], cold, log) for n in "abc"}
+        out = measure(runs, rng=np.random.default_rng(1160 + i), rounds=5, warmups=1,
+                      min_value_ns=MIN_VALUE_NS, timer_resolution_ns=RES_NS, prime=prime)
+        for n in "abc":
+            values = np.array(out[n].values_ns)
+            warm = int(out[n].loops * ns[n]) / out[n].loops
+            if prime:
+                assert np.allclose(values, warm), (n, values, warm)
+            else:  # a value right after the same configuration's last one (across rounds) is warm
+                assert np.sum(values >= warm + 0.9 * cold / out[n].loops) >= 3, (n, values, warm)
+
+
 def test_measure_values_last_at_least_min_value():
     out = measure({"a": FakeRun("a", 37.0), "b": FakeRun("b", 5000.0)},
                   rng=np.random.default_rng(1100), rounds=4, warmups=1,
