@@ -73,14 +73,10 @@ PRECISION_NOTE = ("the kernels are double precision only (kernels/gridcal.h): sc
                   "must work, and products of two coordinates (1e40) do not fit single precision, so there is "
                   "no single-precision variant to compare")
 
-# --quick: three small scenes in the in-context suite, camera rays only, short values, a tiny budget,
-# one small scene, few rays.  Camera rays only: incoherent rays through the scattered scenes' grids
-# wait on memory (2-9 times the four-term cost on a host whose memory is slow), which a 20-second
-# calibration cannot separate from T_int; coherent rays share their cache lines.
+# --quick: three small scenes in the in-context suite, short values, a tiny budget, one small scene, few rays.
 QUICK_SCENES = ("cylinder196",)
 QUICK_BUDGET_S = 20.0
-QUICK_SUITES = dict(CONTEXT_SCENES=("cylinder196", "scattered-skinny", "scattered-compact"),
-                    CONTEXT_RAY_SETS=("camera",))
+QUICK_SUITES = dict(CONTEXT_SCENES=("cylinder196", "scattered-skinny", "scattered-compact"))
 QUICK_RUN = dict(FIRST_ROUNDS=5, STAGE_ROUNDS=3, FIT_RESERVE_S=1.0)
 QUICK_LEAK_MESHES = 2
 QUICK_LEAK_EDGE_POINTS = 1000

@@ -26,6 +26,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from compare_all import MESHES as SHARED_MESHES  # noqa: E402
 from predict_speed import first_use_order  # noqa: E402
 
 from calibrate import Scene  # noqa: E402
@@ -33,7 +34,6 @@ from calibrate._grid import Grid  # noqa: E402
 from calibrate.predict import predict  # noqa: E402
 from calibrate.scenes import sphere_mesh  # noqa: E402
 
-SHARED_MESHES = Path(__file__).resolve().parents[3] / "shared" / "meshes"
 DEFAULT_MESHES = ("stanford_bunny_69k.obj", "armadillo_86k.obj", "sponza_dabrovic_66k.obj")
 THREADS = (1, 2)
 
