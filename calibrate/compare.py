@@ -105,15 +105,18 @@ def _model_counts(stats, terms, spec: GridSpec, point: dict) -> tuple[float, flo
 def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: str = "auto",
                   fidelity: str = "analytic", rays: str = "isotropic", points: int = DEFAULT_POINTS,
                   ray_count: int = DEFAULT_RAY_COUNT,
-                  rounds: int = _sweep.SWEEP_ROUNDS, min_time: float = _sweep.SWEEP_MIN_VALUE_NS * 1e-9,
-                  seed: int = 0, clock: str = _sweep.DEFAULT_CLOCK, progress=None, status=None) -> dict:
+                  rounds: int = _sweep.SWEEP_ROUNDS, builds: int = _sweep.SWEEP_BUILDS, min_time: float = _sweep.SWEEP_MIN_VALUE_NS * 1e-9,
+                  prime: bool = _sweep.SWEEP_PRIME, seed: int = 0, clock: str = _sweep.DEFAULT_CLOCK,
+                  progress=None, status=None) -> dict:
     """Measured sweep, predicted curve and penalties of one scene (module docstring).
 
     scene : Scene, built-in name or mesh path; constants / samples / ratio : as
     :func:`calibrate.predict.predict`; levels : "1" | "2" | "auto"; fidelity : the
     prediction's ("paper" | "analytic" | "simulated"); rays : "isotropic" |
     "camera"; points : sweep points per curve (>= 3); ray_count : rays per batch;
-    rounds, min_time : values per grid and seconds per value; clock : "thread" (the timing
+    rounds, builds, min_time : values per grid, the builds of every grid they are spread
+    over (:func:`calibrate.sweep.sweep`) and seconds per value; prime : one untimed
+    call before each value (as :func:`calibrate.sweep.sweep`); clock : "thread" (the timing
     thread's CPU time) or "wall" (the kernel's monotonic clock, as ``calibrate run`` times).
 
     Returns a JSON-ready dict: ``scene``, ``triangles``, ``units``, ``penalty``,
@@ -158,8 +161,8 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
     say(f"{scene.name}: building {len(unique)} grids")
     o, d = _predict._rays(scene, rays, int(ray_count), RAY_SEED)
     try:
-        measured = _sweep.sweep(scene, unique, (o, d), rounds=rounds, min_time=min_time, seed=seed,
-                                progress=progress, status=lambda text: say(f"{scene.name}: {text}"),
+        measured = _sweep.sweep(scene, unique, (o, d), rounds=rounds, builds=builds, min_time=min_time, seed=seed,
+                                prime=prime, progress=progress, status=lambda text: say(f"{scene.name}: {text}"),
                                 required=(index[chosen],), clock=clock)
     except ValueError as exc:
         raise UserError(f"{scene.name}: the predicted grid cannot be measured ({exc})") from None
@@ -374,6 +377,9 @@ def add_parser(sub):
                     help=f"rays per timed batch (default {DEFAULT_RAY_COUNT})")
     sp.add_argument("--rounds", type=_count_arg("--rounds", 1), default=_sweep.SWEEP_ROUNDS, metavar="N",
                     help=f"timed values per grid (default {_sweep.SWEEP_ROUNDS})")
+    sp.add_argument("--builds", type=_count_arg("--builds", 1), default=_sweep.SWEEP_BUILDS, metavar="N",
+                    help=f"builds of every grid the values are spread over: where a grid lies in memory moves its "
+                         f"time by a few per cent (default {_sweep.SWEEP_BUILDS})")
     sp.add_argument("--min-time", type=positive_number("--min-time"), default=_sweep.SWEEP_MIN_VALUE_NS * 1e-9,
                     metavar="SECONDS", help=f"shortest timed value (default {_sweep.SWEEP_MIN_VALUE_NS * 1e-9:g} s)")
     sp.add_argument("--clock", default=_sweep.DEFAULT_CLOCK, choices=_sweep.CLOCKS,
@@ -408,7 +414,7 @@ def cmd_compare(args) -> int:
             try:
                 results.append(compare_scene(scene, levels=args.levels, fidelity=args.fidelity, rays=args.rays,
                                              points=args.points, ray_count=args.ray_count, rounds=args.rounds,
-                                             min_time=args.min_time, clock=args.clock, progress=bar,
+                                             builds=args.builds, min_time=args.min_time, clock=args.clock, progress=bar,
                                              status=status, **src))
             except UserError as exc:  # a scene whose grids cannot be built: the others still count
                 if len(scenes) == 1:

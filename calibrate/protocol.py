@@ -61,6 +61,7 @@ __all__ = [
     "REL_SPREAD_WARN",
     "TIMER_RESOLUTION_FACTOR",
     "MAD_TO_SIGMA",
+    "Copies",
     "Measurement",
     "MeasurementInterrupted",
     "Pinning",
@@ -247,6 +248,34 @@ class MeasurementInterrupted(KeyboardInterrupt):
     def __init__(self, measurements: dict):
         super().__init__("measurement interrupted; partial results in .measurements")
         self.measurements = measurements
+
+
+class Copies:
+    """One configuration timed on several copies of its data, a copy per value in turn.
+
+    runs : run callables of equal work (e.g. the same grid built several times).  A
+    value's time depends a little on where its data lies in memory (which cache sets
+    and pages it falls on): the same for every value of one copy, different for
+    another, so values of one copy alone hide it.  :func:`measure` calls
+    :meth:`next_value` before each value, so the values cycle through the copies and
+    their median and spread include it.
+    """
+
+    def __init__(self, runs):
+        self.runs = list(runs)
+        if not self.runs or not all(callable(r) for r in self.runs):
+            raise ValueError("Copies needs at least one run callable")
+        self.current = 0
+        self._started = False
+
+    def next_value(self) -> None:
+        """Move to the next copy (the first value stays on the first copy)."""
+        if self._started:
+            self.current = (self.current + 1) % len(self.runs)
+        self._started = True
+
+    def __call__(self, loops: int):
+        return self.runs[self.current](loops)
 
 
 # ---------------------------------------------------------------------------
@@ -461,6 +490,10 @@ def measure(
         them, not as the configuration timed before it left them (interleaving makes
         every value's first loop cold otherwise).
 
+    A run callable with a ``next_value()`` method has it called before each of its
+    values and warm-ups (before the priming call): :class:`Copies` moves to its next
+    copy of the configuration there.
+
     Returns the dict name -> :class:`Measurement` (``into`` when given).
     Raises :class:`MeasurementInterrupted` on KeyboardInterrupt, carrying it.
     """
@@ -522,6 +555,9 @@ def measure(
             if stop():
                 return False
             m = results[name]
+            advance = getattr(configs[name], "next_value", None)
+            if advance is not None:
+                advance()
             if prime:
                 _call(name, configs[name], 1)
             elapsed_ns = _call(name, configs[name], m.loops)

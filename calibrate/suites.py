@@ -26,6 +26,7 @@ from typing import Callable
 import numpy as np
 
 from ._grid import Grid, Scene, empty_grid, resolution_for_cells
+from .protocol import Copies
 from .rays import camera, isotropic
 from .scenes import scattered_compact
 
@@ -55,6 +56,10 @@ CONTEXT_LEVELS = (2, 3)
 CONTEXT_RAY_SETS = ("isotropic", "camera")
 #: Camera rays drawn per ray kept (those missing the grid box are dropped).
 CAMERA_SURPLUS = 8
+#: Copies of each in-context grid, built one after another, its values cycling through
+#: them (:class:`calibrate.protocol.Copies`): where a grid lies in memory moves its
+#: time by a few per cent, the same for every value of one copy.
+CONTEXT_COPIES = 3
 #: Cap on a configuration's cells, so no suite grid strains memory.
 MAX_SUITE_CELLS = 4_000_000
 
@@ -89,12 +94,16 @@ def _res_label(res) -> str:
     return "x".join(str(int(x)) for x in res)
 
 
-def _config(name, kind, suite, scene_name, res_label, intersector, grid: Grid, o, d, ray_set) -> Config:
+def _config(name, kind, suite, scene_name, res_label, intersector, grid: Grid, o, d, ray_set,
+            copies=()) -> Config:
+    """The configuration of ``grid`` on rays (o, d); ``copies``: more builds of the same grid,
+    timed in turn with it (:class:`calibrate.protocol.Copies`)."""
     steps, tests, subgrids = grid.count(o, d)
+    runs = [g.timed_batch(o, d, clock=TIMING_CLOCK) for g in (grid, *copies)]
     return Config(name=name, kind=kind, suite=suite, scene=scene_name, resolution=res_label,
                   intersector=intersector, rays=int(o.shape[0]), steps=int(steps.sum(dtype=np.int64)),
                   tests=int(tests.sum(dtype=np.int64)), subgrids=int(subgrids.sum(dtype=np.int64)),
-                  run=grid.timed_batch(o, d, clock=TIMING_CLOCK), ray_set=ray_set,
+                  run=runs[0] if len(runs) == 1 else Copies(runs), ray_set=ray_set,
                   memory_bytes=int(grid.info["memory_bytes"]))
 
 
@@ -165,8 +174,12 @@ def _rays(scene: Scene, ray_set: str, seed: int):
     raise ValueError(f"unknown ray set {ray_set!r}")
 
 
-def context_configs(intersector: str, seed: int = 0, scenes=None) -> list[Config]:
-    """The in-context suite: built-in scenes (default CONTEXT_SCENES) x resolutions x ray sets."""
+def context_configs(intersector: str, seed: int = 0, scenes=None, copies: int | None = None) -> list[Config]:
+    """The in-context suite: built-in scenes (default CONTEXT_SCENES) x resolutions x ray sets,
+    each grid built ``copies`` times (default :data:`CONTEXT_COPIES`)."""
+    copies = CONTEXT_COPIES if copies is None else copies
+    if isinstance(copies, bool) or int(copies) < 1:
+        raise ValueError(f"copies must be >= 1, got {copies!r}")
     scenes = CONTEXT_SCENES if scenes is None else scenes
     out = []
     for si, name in enumerate(scenes):
@@ -190,7 +203,7 @@ def context_configs(intersector: str, seed: int = 0, scenes=None) -> list[Config
                 if label.startswith("L"):
                     label = f"{label} {_res_label(grid.resolution)}"
                 out.append(_config(f"{name} {label} {ray_set}", "in_context", "context", name, label, intersector,
-                                   grid, o, d, ray_set))
+                                   grid, o, d, ray_set, copies=[build() for _ in range(int(copies) - 1)]))
     return out
 
 

@@ -43,6 +43,8 @@ __all__ = [
     "GridSpec",
     "SWEEP_ROUNDS",
     "SWEEP_MIN_VALUE_NS",
+    "SWEEP_BUILDS",
+    "split_rounds",
     "MAX_SWEEP_CELLS",
     "scaled_resolutions",
     "measure_time_per_ray",
@@ -54,9 +56,13 @@ __all__ = [
 
 #: Values (rounds) per spec and the minimum duration of one value (ns): shorter than a
 #: calibration's (protocol.MIN_VALUE_NS_DEFAULT) since a sweep times many specs.
-SWEEP_ROUNDS = 7
+SWEEP_ROUNDS = 8
 SWEEP_MIN_VALUE_NS = 10_000_000
 SWEEP_WARMUPS = 1
+#: Builds of every grid the values are spread over (see :func:`sweep`), and whether each
+#: value is primed with one untimed call (see :func:`calibrate.protocol.measure`).
+SWEEP_BUILDS = 4
+SWEEP_PRIME = True
 #: A spec whose top level would exceed this many cells is not built (memory and time).
 MAX_SWEEP_CELLS = 2 ** 25
 #: A grid whose build would take more memory than this (bytes) is not built, and a sweep
@@ -263,19 +269,20 @@ def _summary(m: protocol.Measurement, n_rays: int) -> dict:
 
 
 def measure_time_per_ray(scene: Scene, spec_or_grid, origins, directions, *, rounds: int = SWEEP_ROUNDS,
-                         min_time: float = SWEEP_MIN_VALUE_NS * 1e-9, seed: int = 0, mailbox: bool = False,
-                         clock: str = DEFAULT_CLOCK) -> dict:
+                         builds: int = SWEEP_BUILDS, min_time: float = SWEEP_MIN_VALUE_NS * 1e-9, seed: int = 0,
+                         mailbox: bool = False, clock: str = DEFAULT_CLOCK) -> dict:
     """Time and count one grid on a ray batch.
 
     Returns a dict: ``median_ns``, ``mad_ns`` (ns per ray, over ``rounds`` values of the
-    un-instrumented kernel, each lasting at least ``min_time`` seconds, one warm-up
-    discarded; ``clock`` "thread" (default: the timing thread's CPU time) or "wall" (the
-    kernel's own monotonic clock)), ``values_ns`` (per ray), ``steps``, ``tests``, ``subgrids`` (mean per
-    ray, from the instrumented twin on the same rays), ``cells``, ``references``,
-    ``memory_bytes``.
+    un-instrumented kernel spread over ``builds`` builds of the grid (a built Grid is
+    timed as it is), each value lasting at least ``min_time`` seconds, one warm-up per
+    build discarded; ``clock`` "thread" (default: the timing thread's CPU time) or
+    "wall" (the kernel's own monotonic clock)), ``values_ns`` (per ray), ``steps``,
+    ``tests``, ``subgrids`` (mean per ray, from the instrumented twin on the same rays),
+    ``cells``, ``references``, ``memory_bytes``, ``builds``.
     """
-    return sweep(scene, [spec_or_grid], (origins, directions), rounds=rounds, min_time=min_time, seed=seed,
-                 mailbox=mailbox, clock=clock)[0]
+    return sweep(scene, [spec_or_grid], (origins, directions), rounds=rounds, builds=builds, min_time=min_time,
+                 seed=seed, mailbox=mailbox, clock=clock)[0]
 
 
 def _skip(out: list, row: dict, i: int, required) -> None:
@@ -284,23 +291,49 @@ def _skip(out: list, row: dict, i: int, required) -> None:
     out.append(row)
 
 
-def sweep(scene: Scene, specs: Sequence, rays, *, rounds: int = SWEEP_ROUNDS,
+def split_rounds(rounds: int, builds: int) -> list[int]:
+    """Values per build when ``rounds`` values per grid are spread over ``builds`` builds.
+
+    As even as can be, the first builds taking one more; never a build without a value
+    (``builds`` above ``rounds`` gives ``rounds`` builds of one value each).
+    """
+    rounds, builds = int(rounds), int(builds)
+    if rounds < 1 or builds < 1:
+        raise ValueError(f"rounds and builds must be >= 1, got {rounds!r} and {builds!r}")
+    builds = min(builds, rounds)
+    return [rounds // builds + (1 if b < rounds % builds else 0) for b in range(builds)]
+
+
+def sweep(scene: Scene, specs: Sequence, rays, *, rounds: int = SWEEP_ROUNDS, builds: int = SWEEP_BUILDS,
           min_time: float = SWEEP_MIN_VALUE_NS * 1e-9, seed: int = 0, mailbox: bool = False,
-          clock: str = DEFAULT_CLOCK, progress: Callable[[int, int, str], None] | None = None,
+          clock: str = DEFAULT_CLOCK, prime: bool = SWEEP_PRIME,
+          progress: Callable[[int, int, str], None] | None = None,
           status: Callable[[str], None] | None = None, required: Sequence[int] = ()) -> list[dict]:
     """Build, count and time several grids on one ray batch, interleaved.
 
     specs : GridSpecs or built Grids; rays : (origins, directions), (n, 3) each.
-    Every grid is built first and its work counted; then all are timed together by
+    Every grid is built and its work counted; then all are timed together by
     :func:`calibrate.protocol.measure`, each round in a fresh random order drawn from
     ``seed``.  A spec whose top level exceeds :data:`MAX_SWEEP_CELLS` cells, or whose
     build fails (more than :data:`MAX_SWEEP_MEMORY_BYTES`), gives a dict with ``skipped`` (the reason) and no times.
+
+    ``rounds`` values per grid are spread over ``builds`` builds of every spec
+    (:func:`split_rounds`): the grids are built, timed for their share of the values,
+    freed, and built again.  Where a grid's memory lies decides a few per cent of its
+    time (which cache sets and pages its cells fall on), the same for every value of
+    one build and different for the next, so one build's values alone cannot show it;
+    pooled over builds, it is part of each grid's median and spread.  The loop count
+    is calibrated on the first build and kept.  A Grid passed in (not a spec) is timed
+    as it is in every build.  ``prime`` calls a grid once, untimed, before each of its
+    values (:func:`calibrate.protocol.measure`), as ``calibrate run`` does; primed, the
+    warm-ups are run on the first build only, else on every build.
 
     ``required`` : indices of specs that must be built: when one is skipped the sweep
     raises ``ValueError`` at once (before building the rest).
 
     Returns one dict per spec, in order (see :func:`measure_time_per_ray`), each with
-    ``spec`` (its :meth:`GridSpec.to_dict`, or None for a Grid).
+    ``spec`` (its :meth:`GridSpec.to_dict`, or None for a Grid) and ``builds`` (how
+    many builds it was timed in).
     """
     if clock not in CLOCKS:
         raise ValueError(f"unknown clock {clock!r}; choose one of {', '.join(CLOCKS)}")
@@ -310,46 +343,77 @@ def sweep(scene: Scene, specs: Sequence, rays, *, rounds: int = SWEEP_ROUNDS,
     n_rays = int(o.shape[0])
     if n_rays < 1:
         raise ValueError("sweep needs at least one ray")
-    if int(rounds) < 1:
+    if isinstance(rounds, bool) or int(rounds) < 1:
         raise ValueError(f"rounds must be >= 1, got {rounds!r}")
+    if isinstance(builds, bool) or int(builds) < 1:
+        raise ValueError(f"builds must be >= 1, got {builds!r}")
     if not (min_time > 0):
         raise ValueError(f"min_time must be > 0 s, got {min_time!r}")
+    shares = split_rounds(rounds, builds)
     out: list[dict] = []
-    configs = {}
-    held = 0
-    for i, spec in enumerate(specs):
-        row = dict(spec=spec.to_dict() if isinstance(spec, GridSpec) else None)
-        if status is not None:
-            status(f"building {i + 1}/{len(specs)}")
-        if isinstance(spec, GridSpec) and spec.top_cells > MAX_SWEEP_CELLS:
-            row["skipped"] = f"{spec.top_cells:,} top-level cells exceed the sweep's {MAX_SWEEP_CELLS:,}"
-            _skip(out, row, i, required)
-            continue
-        if held > MAX_SWEEP_TOTAL_BYTES:
-            row["skipped"] = f"the sweep's grids already hold {held / 2**30:.1f} GiB"
-            _skip(out, row, i, required)
-            continue
-        try:
-            grid = _as_grid(scene, spec, mailbox)
-        except (ValueError, MemoryError) as exc:
-            row["skipped"] = f"not built: {exc}"
-            _skip(out, row, i, required)
-            continue
-        row["resolution"] = list(grid.resolution)
-        row.update(_counts(grid, o, d))
-        held += row["memory_bytes"]
-        configs[str(i)] = grid.timed_batch(o, d, clock=clock)
-        out.append(row)
+    measured: dict[str, protocol.Measurement] = {}
+    rng = np.random.default_rng(seed)
+    ticks = [0, 0]  # progress ticks of the builds before this one, and of this one so far
+
+    def build_all(b: int) -> dict:
+        configs, held = {}, 0
+        for i, spec in enumerate(specs):
+            if b > 0 and "skipped" in out[i]:
+                continue
+            if status is not None:
+                status(f"building {i + 1}/{len(specs)}" + (f" (build {b + 1}/{len(shares)})" if b else ""))
+            row = out[i] if b > 0 else dict(spec=spec.to_dict() if isinstance(spec, GridSpec) else None)
+            if b == 0 and isinstance(spec, GridSpec) and spec.top_cells > MAX_SWEEP_CELLS:
+                row["skipped"] = f"{spec.top_cells:,} top-level cells exceed the sweep's {MAX_SWEEP_CELLS:,}"
+                _skip(out, row, i, required)
+                continue
+            if held > MAX_SWEEP_TOTAL_BYTES:
+                if b == 0:
+                    row["skipped"] = f"the sweep's grids already hold {held / 2**30:.1f} GiB"
+                    _skip(out, row, i, required)
+                continue
+            try:
+                grid = _as_grid(scene, spec, mailbox)
+            except (ValueError, MemoryError) as exc:
+                if b == 0:
+                    row["skipped"] = f"not built: {exc}"
+                    _skip(out, row, i, required)
+                continue
+            if b == 0:
+                row["resolution"] = list(grid.resolution)
+                row.update(_counts(grid, o, d))
+                out.append(row)
+            held += row["memory_bytes"]
+            row["builds"] = row.get("builds", 0) + 1
+            configs[str(i)] = grid.timed_batch(o, d, clock=clock)
+            if progress is not None:
+                progress(0, 0, f"built {i + 1}/{len(specs)}")
+        return configs
+
+    def report(done: int, total: int, label: str) -> None:
+        if total:
+            ticks[1] = done
         if progress is not None:
-            progress(0, 0, f"built {i + 1}/{len(specs)}")
-    if configs:
+            progress(ticks[0] + done if total else 0, total and grand_total, label)
+
+    grand_total = 0
+    for b in range(len(shares)):
+        configs = build_all(b)
+        if not configs:
+            break
+        if b == 0:
+            grand_total = len(configs) * (rounds + SWEEP_WARMUPS * (1 if prime else len(shares)))
         if status is not None:
-            status("timing")
-        measured = protocol.measure(configs, rng=np.random.default_rng(seed), rounds=int(rounds),
-                                    warmups=SWEEP_WARMUPS, min_value_ns=max(1, int(min_time * 1e9)),
-                                    progress=progress)
-        for key, m in measured.items():
-            out[int(key)].update(_summary(m, n_rays))
+            status("timing" + (f" (build {b + 1}/{len(shares)})" if len(shares) > 1 else ""))
+        # primed, the warm-ups on the first build only: a grid built again was just written
+        # (its pages are mapped), and each value starts from its own call
+        warmups = SWEEP_WARMUPS if b == 0 or not prime else 0
+        protocol.measure(configs, rng=rng, rounds=sum(shares[:b + 1]), warmups=warmups,
+                         min_value_ns=max(1, int(min_time * 1e9)), progress=report, into=measured, prime=prime)
+        ticks[:] = [ticks[0] + ticks[1], 0]
+        del configs  # the grids are freed before the next build
+    for key, m in measured.items():
+        out[int(key)].update(_summary(m, n_rays))
     return out
 
 

@@ -442,6 +442,7 @@ CASES: list[Case] = [
     cli(BENCH, "NaN ray count", "compare --ratio 1 --ray-count nan", "--ray-count must be a whole number"),
     cli(BENCH, "absurd ray count", "compare --ratio 1 --ray-count 100000000000", "--ray-count must be at most"),
     cli(BENCH, "negative rounds", "compare --ratio 1 --rounds -1", "--rounds must be at least 1"),
+    cli(BENCH, "zero builds", "compare --ratio 1 --builds 0", "--builds must be at least 1"),
     cli(BENCH, "zero shortest value", "compare --ratio 1 --min-time 0", "must be a positive number"),
     cli(BENCH, "NaN shortest value", "compare --ratio 1 --min-time nan", "must be a positive number"),
     cli(BENCH, "unknown level count", "compare --ratio 1 --levels 3", "invalid choice"),

@@ -9,6 +9,7 @@ import pytest
 
 from calibrate.protocol import (
     MAD_TO_SIGMA,
+    Copies,
     REL_SPREAD_WARN,
     TIMER_RESOLUTION_FACTOR,
     Measurement,
@@ -138,6 +139,45 @@ def test_prime_takes_each_value_warm(i):
                 assert np.allclose(values, warm), (n, values, warm)
             else:  # a value right after the same configuration's last one (across rounds) is warm
                 assert np.sum(values >= warm + 0.9 * cold / out[n].loops) >= 3, (n, values, warm)
+
+
+@pytest.mark.parametrize("i", range(3))
+def test_copies_take_the_values_in_turn(i):
+    """Each value (its priming call and its warm-up too) runs on one copy, the next
+    value on the next copy: the values carry every copy's planted cost, and their
+    median lies among them, where one copy alone shows only its own."""
+    rng = np.random.default_rng(1170 + i)
+    base = float(rng.uniform(500.0, 5_000.0))
+    costs = base * (1.0 + rng.uniform(0.02, 0.10, size=3).cumsum())
+    log = []
+    copies = Copies([FakeRun(f"copy{k}", c, log=log) for k, c in enumerate(costs)])
+    rounds = 9
+    out = measure({"a": copies, "b": FakeRun("b", base, log=log)}, rng=np.random.default_rng(1180 + i),
+                  rounds=rounds, warmups=1, min_value_ns=MIN_VALUE_NS, timer_resolution_ns=RES_NS, prime=True)
+    loops = out["a"].loops
+    values = np.array(out["a"].values_ns)
+    per_copy = [int(loops * c) / loops for c in costs]
+    # warm-up on copy 0, then the values on copies 1, 2, 0, 1, ... : three of each
+    for k, v in enumerate(per_copy):
+        assert np.sum(np.isclose(values, v)) == rounds // 3, (k, values, per_copy)
+    assert out["a"].median == pytest.approx(per_copy[1])
+    # after the loop calibration (copy 0: one discarded call, then 1, 2, 4, ... loops),
+    # each value is a priming call and a timed call on one copy: the warm-up on copy 0,
+    # then the values on copies 1, 2, 0, 1, ...
+    calls = [(n, l) for n, l in log if n.startswith("copy")]
+    calibration = 1 + loops.bit_length()
+    assert calls[:calibration] == [("copy0", 1)] + [("copy0", 2 ** k) for k in range(loops.bit_length())]
+    pairs = [calls[j:j + 2] for j in range(calibration, len(calls), 2)]
+    assert len(pairs) == rounds + 1
+    for v, pair in enumerate(pairs):
+        assert pair == [(f"copy{v % 3}", 1), (f"copy{v % 3}", loops)], (v, pair)
+
+
+def test_copies_needs_run_callables():
+    with pytest.raises(ValueError, match="at least one run callable"):
+        Copies([])
+    with pytest.raises(ValueError, match="at least one run callable"):
+        Copies([1, 2])
 
 
 def test_measure_values_last_at_least_min_value():

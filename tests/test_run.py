@@ -14,7 +14,7 @@ import pytest
 
 from calibrate import calfile, run, suites
 from calibrate.cli import main
-from calibrate.protocol import MeasurementInterrupted
+from calibrate.protocol import Copies, MeasurementInterrupted
 
 
 @pytest.fixture
@@ -38,6 +38,35 @@ def _interrupt_after(n_values: int):
                 raise KeyboardInterrupt
 
     return progress
+
+
+def test_in_context_grids_are_timed_on_copies(small_suite, monkeypatch):
+    """Each in-context configuration times CONTEXT_COPIES separate builds of its grid in
+    turn (equal in every count and byte total, the same first hits), counted once."""
+    from calibrate._grid import Grid
+
+    timed, original = [], Grid.timed_batch
+
+    def tracked(self, *a, **kw):
+        timed.append((id(self), self.info))
+        return original(self, *a, **kw)
+
+    monkeypatch.setattr(Grid, "timed_batch", tracked)
+    k = suites.CONTEXT_COPIES
+    configs = suites.context_configs("watertight", 0, scenes=("cylinder196",))
+    assert configs and k > 1 and len(timed) == k * len(configs)
+    for j, c in enumerate(configs):
+        assert isinstance(c.run, Copies) and len(c.run.runs) == k
+        group = timed[j * k:(j + 1) * k]
+        assert len({i for i, _ in group}) == k  # separate grids
+        assert all(info == group[0][1] for _, info in group), c.name
+        assert group[0][1]["memory_bytes"] == c.memory_bytes
+        assert len({r(1)[1] for r in c.run.runs}) == 1  # the same checksum of first hits
+    single = suites.context_configs("watertight", 0, scenes=("cylinder196",), copies=1)
+    assert [c.record() for c in single] == [c.record() for c in configs]
+    assert not any(isinstance(c.run, Copies) for c in single)
+    with pytest.raises(ValueError, match="copies"):
+        suites.context_configs("watertight", 0, scenes=("cylinder196",), copies=0)
 
 
 def test_run_writes_a_valid_calibration(small_suite, tmp_path):

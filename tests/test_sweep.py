@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import weakref
 
 import numpy as np
 import pytest
@@ -10,7 +11,7 @@ import pytest
 from calibrate import rays
 from calibrate._grid import Grid, Scene
 from calibrate.sweep import (MAX_SWEEP_CELLS, GridSpec, best_point, fit_minimum, measure_time_per_ray,
-                             model_subgrid_resolutions, penalty, scaled_resolutions, sweep)
+                             model_subgrid_resolutions, penalty, scaled_resolutions, split_rounds, sweep)
 
 #: Short timings: these tests check counts and bookkeeping, never speed.
 FAST = dict(rounds=2, min_time=1e-4)
@@ -72,6 +73,58 @@ def test_sweep_counts_equal_grid_count(cylinder, index):
         assert p["subgrids"] == pytest.approx(float(subgrids.mean()), rel=1e-12)
         assert p["median_ns"] > 0 and p["mad_ns"] >= 0 and len(p["values_ns"]) == FAST["rounds"]
     assert points[0]["subgrids"] == 0.0 and points[1]["subgrids"] > 0
+
+
+def test_split_rounds_spreads_the_values_over_the_builds():
+    assert split_rounds(8, 4) == [2, 2, 2, 2]
+    assert split_rounds(7, 3) == [3, 2, 2]
+    assert split_rounds(2, 5) == [1, 1]  # no build without a value
+    assert split_rounds(5, 1) == [5]
+    for bad in ((0, 1), (3, 0)):
+        with pytest.raises(ValueError):
+            split_rounds(*bad)
+
+
+@pytest.mark.parametrize("index", range(2))
+def test_sweep_builds_every_spec_again_for_each_share_of_values(cylinder, monkeypatch, index):
+    """Each build makes a fresh grid of every spec (a grid passed in is reused), times it
+    for its share of the values, and frees it; the values pool into one series."""
+    rounds, builds = 5, 3
+    made, timed = [], []
+    original_build, original_timed = GridSpec.build, Grid.timed_batch
+
+    def counting_build(self, scene, **kw):
+        # the same spec's grid of the build before, and its timed batch (which holds the
+        # kernel's grid), are freed by now
+        assert all(ref() is None for top, ref in made + timed if top == self.top)
+        grid = original_build(self, scene, **kw)
+        made.append((self.top, weakref.ref(grid)))
+        return grid
+
+    def tracked_timed_batch(self, *a, **kw):
+        run = original_timed(self, *a, **kw)
+        timed.append((tuple(self.resolution), weakref.ref(run)))
+        return run
+
+    monkeypatch.setattr(GridSpec, "build", counting_build)
+    monkeypatch.setattr(Grid, "timed_batch", tracked_timed_batch)
+    o, d = _rays(cylinder, seed=index)
+    given = Grid.uniform(cylinder, (2, 2, 8))
+    specs = [GridSpec("uniform", [(5, 5, 20)]), GridSpec("nested", [(3, 3, 6)], ratio=0.926), given]
+    ticks = []
+    points = sweep(cylinder, specs, (o, d), seed=index, rounds=rounds, builds=builds, min_time=1e-4,
+                   progress=lambda done, total, label: total and ticks.append((done, total)))
+    assert [top for top, _ in made] == [(5, 5, 20), (3, 3, 6)] * builds
+    # one progress count over every build: rising by one a value (and a warm-up, on the first build)
+    assert [t for _, t in ticks] == [len(specs) * (rounds + 1)] * len(ticks)
+    assert [dn for dn, _ in ticks] == list(range(1, len(ticks) + 1)) and len(ticks) == ticks[0][1]
+    for p in points:
+        assert len(p["values_ns"]) == rounds and p["builds"] == builds
+    one = sweep(cylinder, specs[:1], (o, d), seed=index, rounds=rounds, builds=1, min_time=1e-4)[0]
+    assert one["builds"] == 1 and len(one["values_ns"]) == rounds
+    assert one["steps"] == points[0]["steps"] and one["tests"] == points[0]["tests"]
+    with pytest.raises(ValueError, match="builds"):
+        sweep(cylinder, specs[:1], (o, d), builds=0, min_time=1e-4)
 
 
 def test_measure_time_per_ray_on_a_built_grid(cylinder):

@@ -24,6 +24,7 @@ from pathlib import Path
 
 from calibrate import Scene
 from calibrate.compare import DEFAULT_POINTS, compare_scene, plot, summarise
+from calibrate.sweep import SWEEP_BUILDS, SWEEP_ROUNDS
 from calibrate.predict import constants_from_args, resolve_constants
 from calibrate.scenes import builtin_names
 
@@ -49,7 +50,9 @@ def main() -> None:
                     help="the rays traced; the calibration's fit of that set alone when it has one")
     ap.add_argument("--big", type=int, default=50_000, help="triangles above which --big-rays is used")
     ap.add_argument("--big-rays", type=int, default=2048)
-    ap.add_argument("--rounds", type=int, default=7)
+    ap.add_argument("--rounds", type=int, default=SWEEP_ROUNDS, help="timed values per grid")
+    ap.add_argument("--builds", type=int, default=SWEEP_BUILDS, help="builds of every grid the values are spread over")
+    ap.add_argument("--no-prime", action="store_true", help="no untimed call before each value")
     ap.add_argument("--out", default="compare_all.json")
     ap.add_argument("--plot", default=None)
     ap.add_argument("--plot-scenes", nargs="*", default=[])
@@ -77,7 +80,7 @@ def main() -> None:
           f"levels {args.levels}; fidelity "
           f"{args.fidelity}; "
           f"{args.points} points per depth; {args.rays} rays ({args.big_rays} above {args.big:,} triangles); "
-          f"{args.rounds} rounds")
+          f"{args.rounds} values per grid over {args.builds} builds{', unprimed' if args.no_prime else ''}")
     results = []
     for name in names:
         scene = Scene.load(name)
@@ -85,7 +88,8 @@ def main() -> None:
         t0 = time.monotonic()
         try:
             r = compare_scene(scene, levels=args.levels, fidelity=args.fidelity, points=args.points,
-                              ray_count=n_rays, rounds=args.rounds, rays=args.ray_set,
+                              ray_count=n_rays, rounds=args.rounds, builds=args.builds,
+                              prime=not args.no_prime, rays=args.ray_set,
                               **source)
         except ValueError as exc:  # e.g. the predicted grid does not fit the sweep's memory budget
             print(f"{scene.name:28s} skipped: {exc}", flush=True)
