@@ -504,6 +504,14 @@ def cache_bytes_of(cal: Mapping) -> int | None:
     return None
 
 
+def largest_grid_bytes(cal: Mapping) -> int | None:
+    """Bytes of the largest grid a calibration timed in context (its memory term was
+    fitted on grids up to this size); None when no in-context measurement records one."""
+    sizes = [int(m.get("memory_bytes") or 0) for m in cal.get("measurements") or []
+             if m.get("kind") == "in_context" and m.get("values_ns")]
+    return max(sizes) if sizes and max(sizes) > 0 else None
+
+
 def samples_by_name(cal: Mapping) -> dict[str, np.ndarray]:
     """Posterior samples of a (validated) calibration as name -> (S,) float arrays.
 

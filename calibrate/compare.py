@@ -169,6 +169,9 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
     stats = scene.stats
     terms = _predict.analytic_uniform_plan(stats, k, False)[0]["terms"]
     notes = list(k.notes)
+    extrapolated = _predict.extrapolation_note(k, pred["memory_bytes"])
+    if extrapolated:
+        notes.append(extrapolated)
     curves, all_points = [], []
     for L, specs in curve_specs.items():
         pts = []
@@ -176,7 +179,8 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
             m = measured[index[spec]]
             p = dict(levels=L, factor=float(f), resolution=list(spec.top), sub_scale=spec.sub_scale
                      if spec.kind == "nested" else None, **{key: m.get(key) for key in (
-                         "median_ns", "mad_ns", "steps", "tests", "subgrids", "cells", "memory_bytes", "skipped")})
+                         "median_ns", "mad_ns", "steps", "tests", "subgrids", "cells", "memory_bytes", "skipped")},
+                     values=len(m.get("values_ns") or []))
             if "median_ns" in m:
                 steps, tests, subs, source = _model_counts(stats, terms, spec, m)
                 band = k.cost_samples(steps, tests, subs, float(m.get("memory_bytes") or 0.0))
@@ -191,7 +195,7 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
             all_points.extend(pts)
             continue
         fit = _sweep.fit_minimum([p["factor"] for p in ok], [p["median_ns"] for p in ok],
-                                 mads=[p["mad_ns"] for p in ok])
+                                 mads=[p["mad_ns"] for p in ok], counts=[p["values"] for p in ok])
         best_spec = _curve_spec(centres[L], fit["scale"])
         fit = dict(fit, factor=fit.pop("scale"), resolution=list(best_spec.top),
                    sub_scale=best_spec.sub_scale if best_spec.kind == "nested" else None)

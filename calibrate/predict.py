@@ -97,6 +97,10 @@ RATIO_MODE_T_SETUP_IN_T_STEP = 2.66
 #: (docs/compare.md).  The earlier 20% was set when T_sub was held at a third of its
 #: in-context value, which made every nested grid look cheaper than it is.
 DEEPEN_MIN_GAIN = 0.10
+#: A plan holding more than this many times the largest grid the calibration timed gets
+#: a note: its cost is extrapolated (measured here: grids past 64 MB cost 1.5-2.7 times
+#: what the one-level memory term says; docs/compare.md).
+EXTRAPOLATION_FACTOR = 2.0
 #: The same with ``ratio`` alone, where T_setup and T_sub are assumed (RATIO_MODE_*), not
 #: measured: the wider margin that fixed the room and the over-deep sphere and cylinder1996
 #: plans in ratio mode (docs/compare.md).
@@ -145,15 +149,17 @@ class Constants:
     ``samples`` (dict name -> (S,) float64, same names without ``_ns``);
     ``units`` is ``"ns"`` or ``"T_step"`` (ratio mode); ``notes`` lists assumptions;
     ``fitted_on`` is the ray set the constants were fitted on alone, or None (all of them);
-    ``cache_bytes`` is the cache T_mem was measured against (None without a memory term).
+    ``cache_bytes`` is the cache T_mem was measured against (None without a memory term);
+    ``largest_grid_bytes`` the largest grid the calibration timed (None when unknown).
     """
 
     def __init__(self, t_setup, t_step, t_int, t_sub, samples, units, notes, fitted_on=None, t_mem=0.0,
-                 cache_bytes=None):
+                 cache_bytes=None, largest_grid_bytes=None):
         self.t_setup, self.t_step, self.t_int, self.t_sub = (float(t_setup), float(t_step), float(t_int),
                                                              float(t_sub))
         self.t_mem = float(t_mem)
         self.cache_bytes = None if cache_bytes is None else int(cache_bytes)
+        self.largest_grid_bytes = None if largest_grid_bytes is None else int(largest_grid_bytes)
         self.samples = samples
         self.units = units
         self.notes = notes
@@ -205,7 +211,9 @@ def resolve_constants(constants=None, samples=None, ratio=None) -> Constants:
     constants : mapping ``t_setup_ns, t_step_ns, t_int_ns[, t_sub_ns, t_mem_ns]`` -> ns (a
         float or a ``{"median": ...}`` block, e.g. a calibration's ``constants``); an optional
         ``fitted_on`` names the ray set they were fitted on alone (a note says so), and
-        ``cache_bytes`` the cache T_mem was measured against (required with T_mem).
+        ``cache_bytes`` the cache T_mem was measured against (required with T_mem), and
+        ``largest_grid_bytes`` the largest grid the calibration timed (a plan beyond
+        :data:`EXTRAPOLATION_FACTOR` times it gets a note).
     samples : mapping of the same names -> (S,) posterior samples (ns), e.g.
         :func:`calibrate.calfile.samples_by_name`; medians default to theirs.
     ratio : ``T_int / T_step`` > 0 (no calibration; costs in units of T_step).
@@ -284,8 +292,28 @@ def resolve_constants(constants=None, samples=None, ratio=None) -> Constants:
             arrays[n] = np.full(size, med[n])
     if np.any(arrays["t_step"] <= 0) or np.any(arrays["t_int"] <= 0):
         raise ValueError("posterior samples of t_step_ns and t_int_ns must be > 0")
+    largest = None if constants is None else constants.get("largest_grid_bytes")
+    if largest is not None:
+        try:
+            largest = int(largest)
+        except (TypeError, ValueError):
+            raise ValueError(f"largest_grid_bytes must be a whole number of bytes, got {largest!r}") from None
+        if largest <= 0:
+            raise ValueError(f"largest_grid_bytes must be > 0, got {largest}")
     return Constants(med["t_setup"], med["t_step"], med["t_int"], med["t_sub"], arrays, "ns", notes,
-                     fitted_on=fitted_on, t_mem=med["t_mem"], cache_bytes=cache)
+                     fitted_on=fitted_on, t_mem=med["t_mem"], cache_bytes=cache, largest_grid_bytes=largest)
+
+
+def extrapolation_note(k: Constants, memory_bytes) -> str | None:
+    """A note when a grid of ``memory_bytes`` is more than :data:`EXTRAPOLATION_FACTOR`
+    times the largest grid the calibration timed (None otherwise, or when unknown)."""
+    if k.largest_grid_bytes is None or not memory_bytes > EXTRAPOLATION_FACTOR * k.largest_grid_bytes:
+        return None
+    return (f"extrapolated: the planned grid holds {memory_bytes / 1e6:,.0f} MB, "
+            f"{memory_bytes / k.largest_grid_bytes:.0f} times the largest grid the calibration timed "
+            f"({k.largest_grid_bytes / 1e6:.0f} MB); the memory term knows one cache level, and grids past "
+            "the caches further out cost more than it says (docs/compare.md), so the depth and resolution "
+            "may be off")
 
 
 def load_calibration_constants(path, rays: str | None = None) -> Constants:
@@ -305,6 +333,9 @@ def load_calibration_constants(path, rays: str | None = None) -> Constants:
     cache = calfile.cache_bytes_of(cal)
     if cache is not None:
         constants["cache_bytes"] = cache
+    largest = calfile.largest_grid_bytes(cal)
+    if largest is not None:
+        constants["largest_grid_bytes"] = largest
     return resolve_constants(constants=constants, samples=calfile.samples_by_name(block))
 
 
@@ -851,6 +882,9 @@ def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analyt
     if rays == "camera" and fidelity != "simulated":
         notes.append("camera rays: the paper and analytic models assume isotropic lines; use --fidelity simulated "
                      "to count camera rays")
+    note = extrapolation_note(k, plan["memory_bytes"])
+    if note:
+        notes.append(note)
     steps, tests, subgrids = float(plan["steps"]), float(plan["tests"]), float(plan["subgrids"])
     # the paper fidelity is the talk's model: no memory term
     plan_bytes = float(plan["memory_bytes"]) if fidelity != "paper" else 0.0
@@ -1009,6 +1043,8 @@ def constants_from_args(args, rays: str | None = None) -> dict:
         constants["fitted_on"] = k.fitted_on
     if k.cache_bytes is not None:
         constants["cache_bytes"] = k.cache_bytes
+    if k.largest_grid_bytes is not None:
+        constants["largest_grid_bytes"] = k.largest_grid_bytes
     return dict(samples={f"{n}_ns": s[n] for n in names}, constants=constants)
 
 

@@ -76,6 +76,8 @@ MAX_SWEEP_TOTAL_BYTES = 6 * 2 ** 30
 FIT_HALF_SPAN = 2.0
 FIT_AGREEMENT = 0.02
 FIT_MIN_NEIGHBOURS = 2
+#: The standard error of a median of n normal values is about this times sigma / sqrt(n).
+MEDIAN_SE_FACTOR = math.sqrt(math.pi / 2.0)
 #: Clocks a value may be read with (see Grid.timed_batch): the timing thread's CPU time leaves out
 #: the time the thread waited for a core, so a busy host disturbs the values less.
 CLOCKS = ("thread", "wall")
@@ -441,7 +443,7 @@ def best_point(points: Sequence[dict], key: str = "median_ns") -> int:
     return best
 
 
-def fit_minimum(scales, times, *, mads=None, half_span: float = FIT_HALF_SPAN) -> dict:
+def fit_minimum(scales, times, *, mads=None, counts=None, half_span: float = FIT_HALF_SPAN) -> dict:
     """Smooth minimum of a measured curve ``times(scales)``.
 
     A least-squares quadratic in ``log time`` against ``log scale`` through the lowest
@@ -449,11 +451,14 @@ def fit_minimum(scales, times, *, mads=None, half_span: float = FIT_HALF_SPAN) -
     (at least ``FIT_MIN_NEIGHBOURS`` each side where the sweep has them, so the fit has
     points to disagree with).  Its vertex is the minimum when
     the parabola opens upwards, the vertex lies within the fitted points' span, and the
-    curve at the lowest point agrees with it within the noise (3 scaled MADs from
-    ``mads``, at least ``FIT_AGREEMENT`` relative): a curve with a kink there (a cache
-    level, say) is not a parabola, and the lowest measured point is kept instead.
+    curve at the lowest point agrees with it within the noise (3 standard errors of
+    that point, at least ``FIT_AGREEMENT`` relative): a curve with a kink there (a cache
+    level, say, or a resolution that fits the scene's own structure) is not a parabola,
+    and the lowest measured point is kept instead.  The standard error is the scaled MAD
+    from ``mads``; with ``counts`` (values behind each point) it is that of the point's
+    median, 1.2533 sigma / sqrt(count), since a point is the median of its values.
 
-    scales : (J,) positive, increasing; times : (J,) positive (ns); mads : (J,) or None.
+    scales : (J,) positive, increasing; times : (J,) positive (ns); mads, counts : (J,) or None.
     Returns dict ``scale``, ``time`` (the curve's value there), ``fitted`` (bool),
     ``at_edge`` (the lowest point is the first or last of the sweep), ``window``
     ([first, last] index used), ``coef`` (quadratic coefficients, highest first).
@@ -479,8 +484,9 @@ def fit_minimum(scales, times, *, mads=None, half_span: float = FIT_HALF_SPAN) -
     if x.size >= 3:
         coef = np.polyfit(x, y, 2)
         a, b, _ = coef
+        se = 1.0 if counts is None else MEDIAN_SE_FACTOR / math.sqrt(max(1, int(counts[j])))
         noise = FIT_AGREEMENT if mads is None else max(FIT_AGREEMENT,
-                                                       3.0 * protocol.MAD_TO_SIGMA * float(mads[j]) / t[j])
+                                                       3.0 * protocol.MAD_TO_SIGMA * float(mads[j]) * se / t[j])
         agrees = abs(math.exp(np.polyval(coef, math.log(s[j]))) / t[j] - 1.0) <= noise
         if a > 0 and agrees:
             xv = -b / (2.0 * a)

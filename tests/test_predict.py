@@ -16,8 +16,8 @@ from calibrate import calfile, rays
 from calibrate._grid import Grid, Scene
 from calibrate._io import UserError
 from calibrate.cli import _Parser
-from calibrate.predict import (DEFAULT_CALIBRATION, SIM_RAYS, SIM_SEED, add_parser, cmd_predict, fit_count_curves,
-                               predict, resolve_constants)
+from calibrate.predict import (DEFAULT_CALIBRATION, EXTRAPOLATION_FACTOR, SIM_RAYS, SIM_SEED, add_parser,
+                               cmd_predict, fit_count_curves, predict, resolve_constants)
 from models.closed_forms import cells_to_resolution, lines_cells, points_cells, two_level_points
 from models.effects import select_effects
 from models.general import predict_uniform
@@ -184,10 +184,34 @@ def test_bad_command_lines_are_one_line_errors(argv, message):
     (dict(constants=dict(t_step_ns=3.0, t_int_ns=15.0)), "lacks t_setup_ns"),
     (dict(constants=dict(PLANTED_NS, t_step_ns=-3.0)), "t_step_ns must be finite and >= 0"),
     (dict(ratio=RATIO, mailbox="yes"), "mailbox must be True or False"),
+    (dict(constants=dict(PLANTED_NS, largest_grid_bytes=0)), "largest_grid_bytes must be > 0"),
+    (dict(constants=dict(PLANTED_NS, largest_grid_bytes="big")), "largest_grid_bytes must be a whole number"),
 ])
 def test_bad_arguments_raise_value_errors(kwargs, message):
     with pytest.raises(ValueError, match=message):
         predict("cylinder196", **kwargs)
+
+
+@pytest.mark.parametrize("i", range(2))
+def test_a_plan_far_beyond_the_largest_calibrated_grid_says_it_is_extrapolated(i, cal_path):
+    """The note appears once the planned grid holds more than EXTRAPOLATION_FACTOR times
+    the largest grid the calibration timed, and not below; a calibration file gives its
+    largest in-context grid."""
+    plan_bytes = predict("sphere", constants=PLANTED_NS, levels="1")["memory_bytes"]
+    limit = plan_bytes / EXTRAPOLATION_FACTOR
+    for largest, noted in ((limit * (0.9 - 0.3 * i), True), (limit * (1.05 + i), False)):
+        out = predict("sphere", constants=dict(PLANTED_NS, largest_grid_bytes=int(largest)), levels="1")
+        notes = [n for n in out["notes"] if n.startswith("extrapolated")]
+        assert len(notes) == int(noted), (largest, out["notes"])
+        if noted:
+            assert f"{plan_bytes / 1e6:,.0f} MB" in notes[0] and f"{plan_bytes / int(largest):.0f} times" in notes[0]
+    assert not any(n.startswith("extrapolated") for n in predict("sphere", constants=PLANTED_NS)["notes"])
+    cal = calfile.load(cal_path)
+    assert calfile.largest_grid_bytes(cal) is None  # no measurements in the synthetic file
+    cal["measurements"] = [dict(kind="in_context", memory_bytes=5_000 * (j + 1), values_ns=[1.0]) for j in range(3)]
+    cal["measurements"] += [dict(kind="isolated", memory_bytes=10**9, values_ns=[1.0]),
+                            dict(kind="in_context", memory_bytes=10**9, values_ns=[])]
+    assert calfile.largest_grid_bytes(cal) == 15_000
 
 
 def test_unknown_scene_is_named():

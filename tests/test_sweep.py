@@ -206,6 +206,25 @@ def test_fit_minimum_keeps_the_lowest_point_at_a_kink():
     assert fit["scale"] == scales[3] and fit["time"] == 1639.0
 
 
+@pytest.mark.parametrize("i", range(3))
+def test_fit_minimum_judges_a_dip_by_the_medians_standard_error(i):
+    """A point 15% under a smooth curve (a resolution that suits the scene) lies within
+    3 sigma of its values' spread, but far outside 3 standard errors of a median of 8
+    values: with ``counts`` the dip is no parabola and the lowest point is kept, and the
+    fitted best is never above a measured point by more than the medians' noise."""
+    rng = np.random.default_rng(1300 + i)
+    scales = 4.0 ** np.linspace(-1.0, 1.0, 13)
+    times = 100.0 * (1.0 + rng.uniform(0.3, 0.7) * np.log(scales) ** 2)
+    times[6] *= 0.85
+    mads = 0.04 * times
+    loose = fit_minimum(scales, times, mads=mads)
+    assert loose["fitted"] and loose["time"] > 1.05 * times[6]
+    strict = fit_minimum(scales, times, mads=mads, counts=np.full(13, 8))
+    assert not strict["fitted"] and strict["time"] == times[6]
+    smooth = 100.0 * (1.0 + 0.5 * np.log(scales) ** 2)  # no dip: the vertex is still fitted
+    assert fit_minimum(scales, smooth, mads=0.04 * smooth, counts=np.full(13, 8))["fitted"]
+
+
 def test_a_required_grid_that_cannot_be_built_stops_the_sweep_at_once(cylinder):
     side = int(round(MAX_SWEEP_CELLS ** (1 / 3))) + 2
     with pytest.raises(ValueError, match="cannot be measured"):
