@@ -105,7 +105,8 @@ def _model_counts(stats, terms, spec: GridSpec, point: dict) -> tuple[float, flo
 def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: str = "auto",
                   fidelity: str = "analytic", rays: str = "isotropic", points: int = DEFAULT_POINTS,
                   ray_count: int = DEFAULT_RAY_COUNT,
-                  rounds: int = _sweep.SWEEP_ROUNDS, builds: int = _sweep.SWEEP_BUILDS, min_time: float = _sweep.SWEEP_MIN_VALUE_NS * 1e-9,
+                  rounds: int = _sweep.SWEEP_ROUNDS, builds: int = _sweep.SWEEP_BUILDS,
+                  min_time: float = _sweep.SWEEP_MIN_VALUE_NS * 1e-9,
                   prime: bool = _sweep.SWEEP_PRIME, seed: int = 0, clock: str = _sweep.DEFAULT_CLOCK,
                   progress=None, status=None) -> dict:
     """Measured sweep, predicted curve and penalties of one scene (module docstring).

@@ -277,8 +277,8 @@ def measure_time_per_ray(scene: Scene, spec_or_grid, origins, directions, *, rou
 
     Returns a dict: ``median_ns``, ``mad_ns`` (ns per ray, over ``rounds`` values of the
     un-instrumented kernel spread over ``builds`` builds of the grid (a built Grid is
-    timed as it is), each value lasting at least ``min_time`` seconds, one warm-up per
-    build discarded; ``clock`` "thread" (default: the timing thread's CPU time) or
+    timed as it is), each value primed and lasting at least ``min_time`` seconds, one
+    warm-up discarded; ``clock`` "thread" (default: the timing thread's CPU time) or
     "wall" (the kernel's own monotonic clock)), ``values_ns`` (per ray), ``steps``,
     ``tests``, ``subgrids`` (mean per ray, from the instrumented twin on the same rays),
     ``cells``, ``references``, ``memory_bytes``, ``builds``.
