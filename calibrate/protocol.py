@@ -69,6 +69,8 @@ __all__ = [
     "measure",
     "median_mad",
     "pin_to_one_core",
+    "idlest_cpu",
+    "cpu_times",
     "timer_info",
     "timer_resolution_ns",
 ]
@@ -358,12 +360,69 @@ class Pinning:
         self.restore()
 
 
+#: Seconds over which the CPUs' idle time is sampled before choosing one to pin to, and
+#: the idle share (0..1) within which CPUs count as equally idle.
+IDLE_SAMPLE_S = 0.1
+IDLE_TIE = 0.1
+
+
+def _read_proc_stat() -> str:
+    with open("/proc/stat", encoding="ascii") as f:
+        return f.read()
+
+
+def cpu_times(text: str) -> dict[int, tuple[int, int]]:
+    """Per-CPU (idle, total) jiffies from the text of /proc/stat (idle includes iowait)."""
+    out = {}
+    for line in text.splitlines():
+        name, _, rest = line.partition(" ")
+        if not (name.startswith("cpu") and name[3:].isdigit()):
+            continue
+        fields = [int(x) for x in rest.split()]
+        if len(fields) < 4:
+            continue
+        idle = fields[3] + (fields[4] if len(fields) > 4 else 0)
+        out[int(name[3:])] = (idle, sum(fields[:8]))
+    return out
+
+
+def idlest_cpu(cpus, *, interval: float = IDLE_SAMPLE_S, read=_read_proc_stat, sleep=time.sleep,
+               pid: int | None = None) -> tuple[int | None, str]:
+    """The CPU of ``cpus`` that was idlest over ``interval`` seconds, and a note.
+
+    CPUs within :data:`IDLE_TIE` of the idlest count as tied, and the process id picks
+    among them (highest-numbered first), so calibrations started together, each
+    sampling the same idle CPUs, spread over them instead of sharing one.  Returns
+    (None, reason) when /proc/stat cannot be read or names none of ``cpus``.
+    """
+    cpus = sorted(cpus, reverse=True)
+    try:
+        first = cpu_times(read())
+        sleep(interval)
+        second = cpu_times(read())
+    except (OSError, ValueError) as exc:
+        return None, f"CPU load unknown ({exc})"
+    share = {}
+    for c in cpus:
+        if c in first and c in second:
+            d_idle, d_total = second[c][0] - first[c][0], second[c][1] - first[c][1]
+            share[c] = d_idle / d_total if d_total > 0 else 1.0
+    if not share:
+        return None, "CPU load unknown (no CPU of the affinity set in /proc/stat)"
+    best = max(share.values())
+    tied = [c for c in cpus if c in share and share[c] >= best - IDLE_TIE]
+    chosen = tied[(os.getpid() if pid is None else pid) % len(tied)]
+    return chosen, f"idle {100 * share[chosen]:.0f}% over {interval:g} s"
+
+
 def pin_to_one_core(core: int | None = None) -> Pinning:
     """Pin this process to one CPU where the OS allows it.
 
-    core : CPU index, or None to take the highest-numbered CPU in the current
-        affinity set (CPU 0 usually services most interrupts on Linux; pyperf's
-        tuning docs likewise advise benchmarking away from it).
+    core : CPU index, or None to take the idlest CPU of the current affinity set
+        (:func:`idlest_cpu`: another process busy on a CPU, a second calibration say,
+        would share it and evict its caches at every switch), else the
+        highest-numbered one (CPU 0 usually services most interrupts on Linux;
+        pyperf's tuning docs likewise advise benchmarking away from it).
     Never raises on an unsupported platform or a refused request: the returned
     :class:`Pinning` has ``core=None`` and says why in ``note``.
     """
@@ -373,17 +432,20 @@ def pin_to_one_core(core: int | None = None) -> Pinning:
         previous = frozenset(os.sched_getaffinity(0))
     except OSError as exc:
         return Pinning(None, None, f"not pinned: cannot read affinity ({exc})")
+    why = ""
     if core is None:
         if not previous:
             return Pinning(None, previous, "not pinned: empty affinity set")
-        core = max(previous)
+        core, why = idlest_cpu(previous) if len(previous) > 1 else (None, "")
+        if core is None:
+            core = max(previous)
     elif core not in previous:
         raise ValueError(f"core {core} is not in this process's affinity set {sorted(previous)}")
     try:
         os.sched_setaffinity(0, {core})
     except OSError as exc:
         return Pinning(None, previous, f"not pinned: sched_setaffinity refused ({exc})")
-    return Pinning(core, previous, f"pinned to CPU {core} of {sorted(previous)}")
+    return Pinning(core, previous, f"pinned to CPU {core} of {sorted(previous)}" + (f" ({why})" if why else ""))
 
 
 # ---------------------------------------------------------------------------

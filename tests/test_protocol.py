@@ -15,6 +15,8 @@ from calibrate.protocol import (
     Measurement,
     MeasurementInterrupted,
     calibrate_loops,
+    cpu_times,
+    idlest_cpu,
     measure,
     median_mad,
     pin_to_one_core,
@@ -446,10 +448,58 @@ def test_pin_to_one_core_and_restore():
     before = os.sched_getaffinity(0)
     with pin_to_one_core() as pin:
         if pin.core is not None:
-            assert os.sched_getaffinity(0) == {pin.core} and pin.core == max(before)
+            assert os.sched_getaffinity(0) == {pin.core} and pin.core in before
     assert os.sched_getaffinity(0) == before
     with pytest.raises(ValueError, match="affinity set"):
         pin_to_one_core(core=max(before) + 1000)
+
+
+PROC_STAT = """cpu  {a} 0 {b} {c} 5 0 1 0 0 0
+cpu0 {u0} 0 10 {i0} 2 0 1 0 0 0
+cpu1 {u1} 0 10 {i1} 3 0 0 0 0 0
+intr 12345 0 0
+ctxt 999
+"""
+
+
+def _stat(u0, i0, u1, i1):
+    return PROC_STAT.format(a=u0 + u1, b=20, c=i0 + i1, u0=u0, i0=i0, u1=u1, i1=i1)
+
+
+def test_cpu_times_reads_idle_and_total_per_cpu():
+    t = cpu_times(_stat(100, 900, 400, 600))
+    assert t == {0: (902, 1013), 1: (603, 1013)}
+
+
+@pytest.mark.parametrize("i", range(4))
+def test_idlest_cpu_avoids_a_busy_cpu_and_spreads_ties(i):
+    """A CPU another process keeps busy is avoided whatever the process id; between CPUs
+    equally idle the process id decides, so two processes with neighbouring ids part."""
+    rng = np.random.default_rng(1400 + i)
+    busy = int(rng.integers(0, 2))
+    before = _stat(100, 900, 100, 900)
+    spent = [(95, 5), (5, 95)] if busy == 0 else [(5, 95), (95, 5)]  # (user, idle) jiffies per CPU
+    after = _stat(100 + spent[0][0], 900 + spent[0][1], 100 + spent[1][0], 900 + spent[1][1])
+    for pid in (1000 + i, 1001 + i):
+        reads = iter([before, after])
+        cpu, note = idlest_cpu({0, 1}, read=lambda: next(reads), sleep=lambda s: None, pid=pid)
+        assert cpu == 1 - busy and "idle 95%" in note
+    tied = _stat(150, 950, 152, 948)
+    chosen = set()
+    for pid in (2000 + i, 2001 + i):
+        reads = iter([before, tied])
+        chosen.add(idlest_cpu({0, 1}, read=lambda: next(reads), sleep=lambda s: None, pid=pid)[0])
+    assert chosen == {0, 1}
+
+
+def test_idlest_cpu_without_proc_stat_says_so():
+    def unreadable():
+        raise OSError("no /proc here")
+
+    cpu, note = idlest_cpu({0, 1}, read=unreadable, sleep=lambda s: None)
+    assert cpu is None and "no /proc here" in note
+    cpu, note = idlest_cpu({5, 6}, read=lambda: _stat(1, 1, 1, 1), sleep=lambda s: None)
+    assert cpu is None and "no CPU of the affinity set" in note
 
 
 def test_pin_is_a_noop_without_affinity_support(monkeypatch):
