@@ -540,6 +540,28 @@ static PyObject *py_timer_resolution_ns(PyObject *self, PyObject *args)
     return PyLong_FromLongLong((long long)gc_timer_resolution_ns());
 }
 
+static PyObject *py_traverse_isa(PyObject *self, PyObject *args)
+{
+    (void)self;
+    (void)args;
+    return PyUnicode_FromString(gc_traverse_isa());
+}
+
+static PyObject *py_set_traverse_isa(PyObject *self, PyObject *args)
+{
+    (void)self;
+    const char *isa;
+    if (!PyArg_ParseTuple(args, "s", &isa)) {
+        return NULL;
+    }
+    char err[GC_ERROR_LEN] = "";
+    gc_status st = gc_traverse_set_isa(isa, err);
+    if (st != GC_OK) {
+        return raise_status(st, err);
+    }
+    return PyUnicode_FromString(gc_traverse_isa());
+}
+
 static PyMethodDef methods[] = {
     {"build", (PyCFunction)(void (*)(void))py_build, METH_VARARGS | METH_KEYWORDS,
      "build(vertices, faces, resolution, ...) -> grid capsule"},
@@ -560,6 +582,10 @@ static PyMethodDef methods[] = {
      "mesh_sums(vertices, faces, stride) -> dict of the scene sums (models.stats)"},
     {"mesh_watertight", py_mesh_watertight, METH_VARARGS, "mesh_watertight(vertices, faces) -> bool"},
     {"timer_resolution_ns", py_timer_resolution_ns, METH_NOARGS, "clock_getres of CLOCK_MONOTONIC"},
+    {"traverse_isa", py_traverse_isa, METH_NOARGS,
+     "traverse_isa() -> 'avx2' | 'sse2' | 'scalar': the timed twin's sign stage"},
+    {"set_traverse_isa", py_set_traverse_isa, METH_VARARGS,
+     "set_traverse_isa('sse2' | 'avx2' | 'auto') -> the instruction set now in use"},
     {NULL, NULL, 0, NULL}};
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_kernels",

@@ -63,10 +63,8 @@ DEFAULT_SCENE = "sphere"
 # --- memory layout of the kernel's grid (kernels/gc_internal.h, kernels/grid.c) ---------
 #: gc_cell: begin + count, two uint32.
 BYTES_PER_CELL = 8
-#: one uint32 index in refs plus one gc_tri copy (3 x 3 doubles) in ref_tris.
-BYTES_PER_REFERENCE = 4 + 72
-#: tri_id: one int32 per mesh triangle.
-BYTES_PER_TRIANGLE = 4
+#: a lane of a gc_pack: the triangle's 3 x 3 doubles and its int32 face index.
+BYTES_PER_REFERENCE = 72 + 4
 #: gc_node: one per (sub)grid, the top level included.
 BYTES_PER_NODE = 120
 
@@ -366,9 +364,9 @@ def _res_list(res):
     return [int(x) for x in res]
 
 
-def _memory_bytes(n_triangles, cells, refs, nodes) -> int:
-    return int(BYTES_PER_TRIANGLE * n_triangles + BYTES_PER_CELL * cells + BYTES_PER_REFERENCE * refs
-               + BYTES_PER_NODE * nodes)
+def _memory_bytes(cells, refs, nodes) -> int:
+    """Bytes of a built grid (kernels/grid.c, gc_grid_get_info), less the fixed gc_grid header."""
+    return int(BYTES_PER_CELL * cells + BYTES_PER_REFERENCE * refs + BYTES_PER_NODE * nodes)
 
 
 def _interval(x: np.ndarray) -> dict:
@@ -385,7 +383,7 @@ def _check_choice(name, value, choices):
 def _level_dicts_uniform(stats, res, refs):
     cells = res[0] * res[1] * res[2]
     return [dict(level=1, resolution=_res_list(res), grids=1, cells=int(cells), references=float(refs),
-                 memory_bytes=_memory_bytes(0, cells, refs, 1))]
+                 memory_bytes=_memory_bytes(cells, refs, 1))]
 
 
 # ---------------------------------------------------------------------------------------
@@ -443,9 +441,9 @@ def paper_plan(stats, cls, k: Constants, levels):
         for lv in out_levels:
             leaf = lv["level"] == L
             lv["references"] = float(refs) if leaf else 0.0
-            lv["memory_bytes"] = _memory_bytes(0, lv["cells"], refs if leaf else 0, lv["grids"])
+            lv["memory_bytes"] = _memory_bytes(lv["cells"], refs if leaf else 0, lv["grids"])
         return dict(levels=out_levels, steps=steps, tests=tests, subgrids=subgrids,
-                    memory_bytes=_memory_bytes(n, total_cells, refs, nodes), kind=kind)
+                    memory_bytes=_memory_bytes(total_cells, refs, nodes), kind=kind)
 
     if levels == "auto":
         plans = [plan(L) for L in range(1, MAX_LEVELS + 1)]
@@ -472,7 +470,7 @@ def _uniform_counts(stats, res, k: Constants, terms):
     """(steps, tests, references, memory bytes) of a uniform grid under the general model."""
     _, steps, tests = predict_uniform(stats, res, k.t_setup, k.t_step, k.t_int, overlap="exact", terms=terms)
     refs = expected_refs(stats, res, overlap="exact")
-    return steps, tests, refs, _memory_bytes(stats.n_triangles, res[0] * res[1] * res[2], refs, 1)
+    return steps, tests, refs, _memory_bytes(res[0] * res[1] * res[2], refs, 1)
 
 
 def _memory_effect(k: Constants, steps, tests, memory_bytes, what: str, subgrids=0.0) -> dict:
@@ -578,7 +576,7 @@ def _nested_plan(scene, stats, k: Constants, L):
 def _nested_memory_bytes(stats, counts) -> int:
     """Bytes of a nested structure from models.nested (as the kernel stores it)."""
     nodes = sum(info.grids for info in counts.per_level)
-    return _memory_bytes(stats.n_triangles, counts.cells, counts.refs, nodes)
+    return _memory_bytes(counts.cells, counts.refs, nodes)
 
 
 def _nested_levels(counts, n_triangles):
@@ -589,7 +587,7 @@ def _nested_levels(counts, n_triangles):
         lv = dict(level=depth + 1, resolution=_res_list(np.median(res, axis=0).round().astype(int)),
                   grids=int(info.grids), cells=int(info.cells),
                   references=float(counts.refs) if leaf else float(info.refs),
-                  memory_bytes=_memory_bytes(0, info.cells, counts.refs if leaf else 0, info.grids))
+                  memory_bytes=_memory_bytes(info.cells, counts.refs if leaf else 0, info.grids))
         if res.shape[0] > 1:
             lv["resolution_is"] = "median over subgrids"
             lv["resolution_min"] = _res_list(res.min(axis=0))

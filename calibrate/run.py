@@ -418,10 +418,11 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
             warnings.append(result.diagnostics["t_mem_skipped"])
         if skipped:
             meta["by_rays_skipped"] = skipped
-        from ._kernels import CFLAGS
+        from ._kernels import CFLAGS, traverse_isa
 
         cal = calfile.from_fit(result, fingerprint=fingerprint(
-            extra={"kernel_build": CFLAGS, "timing_clock": suites.TIMING_CLOCK}),
+            extra={"kernel_build": CFLAGS, "kernel_isa": traverse_isa(),
+                   "timing_clock": suites.TIMING_CLOCK}),
                                measurements=recs, isolated=isolated, meta=meta, by_rays=by_rays)
         calfile.save(out, cal)
         if part.exists():

@@ -919,7 +919,7 @@ static void copy_part(void *arg)
     }
 }
 
-/* Each reference's triangle laid beside it: references [k0, k1), whole packs. */
+/* Each reference's triangle and face index laid beside it: references [k0, k1), whole packs. */
 typedef struct {
     gc_grid *g;
     int64_t k0, k1;
@@ -938,6 +938,7 @@ static void fill_part(void *arg)
             pk->c[3 + i][lane] = t->v1[i];
             pk->c[6 + i][lane] = t->v2[i];
         }
+        pk->id[lane] = g->tri_id[g->refs[k]];
     }
 }
 
@@ -1102,8 +1103,13 @@ static gc_status build_grid(builder *b, const gc_mesh *mesh, gc_grid **out)
         }
         run_parts(fill_part, jobs, sizeof *jobs, parts);
     }
+    /* the packs hold all traversal reads: the build's arrays go */
     free(g->tris);
     g->tris = NULL;
+    free(g->tri_id);
+    g->tri_id = NULL;
+    free(g->refs);
+    g->refs = NULL;
     *out = g;
     return GC_OK;
 }

@@ -6,9 +6,10 @@
  *           lines (tri_id maps back to the mesh's face index);
  *   nodes : one per (sub)grid, node 0 is the top level;
  *   cells : every node's cells, node k owning [first_cell, first_cell + nx*ny*nz);
- *   refs  : triangle indices; a leaf cell owns refs[begin, begin + count);
- *   ref_tris : the vertices of each reference's triangle, parallel to refs, in packs of
- *           GC_LANES references (gc_pack) so that one coordinate of neighbouring
+ *   refs  : triangle indices (build only; freed after); a leaf cell owns references
+ *           [begin, begin + count);
+ *   ref_tris : the vertices of each reference's triangle and its face index, in packs
+ *           of GC_LANES references (gc_pack) so that one coordinate of neighbouring
  *           references is one vector load.
  * A cell whose count is GC_CELL_SUBGRID holds a subgrid: its begin is a node index.
  */
@@ -43,21 +44,24 @@ typedef struct {
 
 /* The per-reference triangles are stored in packs of GC_LANES references:
  * coordinate c (3 * vertex + axis) of reference k is
- * ref_tris[k / GC_LANES].c[c][k % GC_LANES].  The intersectors read one
- * triangle through a "lane view", a pointer to its coordinate 0, with the
- * coordinates GC_LANES doubles apart (GC_TV); the two-lane test reads one
- * coordinate of a whole pack with one load.  Same bytes per reference as gc_tri;
- * the last pack may have unused lanes. */
-#define GC_LANES 2
+ * ref_tris[k / GC_LANES].c[c][k % GC_LANES], and the mesh's face index of its
+ * triangle is ref_tris[k / GC_LANES].id[k % GC_LANES].  The intersectors read
+ * one triangle through a "lane view", a pointer to its coordinate 0, with the
+ * coordinates GC_LANES doubles apart (GC_TV); the packed sign stage reads one
+ * coordinate of a whole pack with one load (four lanes with AVX2, two halves of
+ * two with SSE2).  The face index travels with the coordinates, so a hit needs
+ * no lookup in another array.  76 bytes per reference; the last pack may have
+ * unused lanes (zeros). */
+#define GC_LANES 4
 typedef struct {
     double c[9][GC_LANES];
-} gc_pack; /* 144 bytes */
+    int32_t id[GC_LANES];
+} gc_pack; /* 304 bytes */
 #define GC_TV(t, c) ((t)[GC_LANES * (c)])
 /* the lane view of reference k */
 #define GC_REF_TRI(packs, k) (&(packs)[(k) / GC_LANES].c[0][(k) % GC_LANES])
 /* bytes of the per-reference triangles of n references */
 #define GC_PACK_BYTES(n) ((((uint64_t)(n) + GC_LANES - 1) / GC_LANES) * (uint64_t)sizeof(gc_pack))
-
 
 typedef struct {
     uint32_t begin; /* first reference, or the subgrid's node index */
@@ -77,7 +81,7 @@ typedef struct {
 } gc_node;              /* 120 bytes */
 
 _Static_assert(sizeof(gc_tri) == 72, "gc_tri is three packed vertices");
-_Static_assert(sizeof(gc_pack) == 72 * GC_LANES, "gc_pack is GC_LANES triangles");
+_Static_assert(sizeof(gc_pack) == 76 * GC_LANES, "gc_pack is GC_LANES triangles and their face indices");
 _Static_assert(sizeof(gc_cell) == 8, "gc_cell is two 32-bit fields");
 _Static_assert(sizeof(gc_node) == 120, "gc_node layout");
 
@@ -87,13 +91,13 @@ struct gc_grid {
                          * (gc_pack): a cell's triangles stream from one contiguous block,
                          * so the cost of a test does not depend on where the triangle
                          * lies in memory */
-    int32_t *tri_id;    /* the mesh's face index of each stored triangle */
+    int32_t *tri_id;    /* the mesh's face index of each stored triangle (build only; freed after) */
     int64_t n_tris;
     gc_node *nodes;
     int64_t n_nodes;
     gc_cell *cells;
     int64_t n_cells;
-    uint32_t *refs;
+    uint32_t *refs;     /* the stored triangle of each reference (build only; freed after) */
     int64_t n_refs;
     gc_intersector intersector;
     int mailbox;

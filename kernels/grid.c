@@ -176,11 +176,9 @@ void gc_grid_get_info(const gc_grid *g, gc_grid_info *info)
         }
     }
     info->n_empty_cells = empty;
-    info->memory_bytes = (int64_t)(sizeof(gc_grid) + (size_t)g->n_tris * sizeof(int32_t) +
-                                   (size_t)GC_PACK_BYTES(g->n_refs) +
+    info->memory_bytes = (int64_t)(sizeof(gc_grid) + (size_t)GC_PACK_BYTES(g->n_refs) +
                                    (size_t)g->n_nodes * sizeof(gc_node) +
-                                   (size_t)g->n_cells * sizeof(gc_cell) +
-                                   (size_t)g->n_refs * sizeof(uint32_t));
+                                   (size_t)g->n_cells * sizeof(gc_cell));
     info->levels = (int32_t)deepest + 1;
     for (int i = 0; i < 3; ++i) {
         info->resolution[i] = g->nodes[0].n[i];

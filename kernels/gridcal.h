@@ -164,6 +164,17 @@ gc_status gc_bench_intersect(const gc_grid *grid, int64_t n, const double *origi
                              const double *directions, int64_t loops,
                              int64_t *elapsed_ns, double *checksum, char *err);
 
+/* The instruction set of the timed watertight twin's sign stage: "avx2" (four
+ * triangles at once, chosen when the CPU has it), "sse2" (two at a time) or
+ * "scalar" (a build without SSE2).  Hits, counts and results are the same on
+ * every path; only the speed differs. */
+const char *gc_traverse_isa(void);
+
+/* Force the timed twin's instruction set, for tests and benchmarks: "sse2",
+ * "avx2" (refused on a CPU without it) or "auto" (the host's best).  Process
+ * wide; not to be called while another thread traces. */
+gc_status gc_traverse_set_isa(const char *isa, char *err);
+
 /* Brute-force first hit over every triangle of the mesh (the reference). */
 gc_status gc_brute_force(const gc_mesh *mesh, gc_intersector intersector, int64_t n,
                          const double *origins, const double *directions,

@@ -3,8 +3,12 @@
  * traverse_impl.h is compiled four times: {timed, instrumented} x {Moller-
  * Trumbore, watertight}.  The intersector is chosen when the grid is built, so
  * the inner loop never branches on it.  The timed twin contains no counter.
- * On SSE2 the watertight twins test a cell's triangles two at a time
- * (gc_isect_watertight_signs2); the results are those of one at a time.
+ * The watertight twins run the sign stage of the test over a pack of four
+ * triangles: two lanes at a time with SSE2, all four at once with AVX2.  The
+ * timed watertight twin is compiled both ways where the compiler can target
+ * AVX2, and the host's CPU picks one when the first batch runs
+ * (gc_traverse_isa); the instrumented twin uses SSE2.  Each lane's arithmetic
+ * is the scalar test's, so hits and counts are the same on every path.
  */
 #define _POSIX_C_SOURCE 199309L
 #include "box.h"
@@ -58,55 +62,72 @@ static gc_status mail_open(const gc_grid *g, gc_mail *m, gc_mail **use, char *er
 }
 
 #if defined(GC_HAVE_PACKED_WATERTIGHT)
-#define GC_WT_PACKED 1
+#define GC_WT_SIMD 2
 #else
-#define GC_WT_PACKED 0
+#define GC_WT_SIMD 0
 #endif
+#define GC_TW_ATTR
 
 #define GC_TW_COUNT 0
 #define GC_TW_ISECT gc_isect_moller_trumbore
-#define GC_TW_PACKED 0
+#define GC_TW_SIMD 0
 #define GC_TW_NAME(x) x##_timed_mt
 #include "traverse_impl.h"
 #undef GC_TW_COUNT
 #undef GC_TW_ISECT
-#undef GC_TW_PACKED
+#undef GC_TW_SIMD
 #undef GC_TW_NAME
 
 #define GC_TW_COUNT 0
 #define GC_TW_ISECT gc_isect_watertight
-#define GC_TW_PACKED GC_WT_PACKED
+#define GC_TW_SIMD GC_WT_SIMD
 #define GC_TW_NAME(x) x##_timed_wt
 #include "traverse_impl.h"
 #undef GC_TW_COUNT
 #undef GC_TW_ISECT
-#undef GC_TW_PACKED
+#undef GC_TW_SIMD
 #undef GC_TW_NAME
+
+#if defined(GC_HAVE_AVX2_WATERTIGHT)
+#undef GC_TW_ATTR
+#define GC_TW_ATTR GC_AVX2
+#define GC_TW_COUNT 0
+#define GC_TW_ISECT gc_isect_watertight
+#define GC_TW_SIMD 4
+#define GC_TW_NAME(x) x##_timed_wt_avx2
+#include "traverse_impl.h"
+#undef GC_TW_COUNT
+#undef GC_TW_ISECT
+#undef GC_TW_SIMD
+#undef GC_TW_NAME
+#undef GC_TW_ATTR
+#define GC_TW_ATTR
+#endif
 
 #define GC_TW_COUNT 1
 #define GC_TW_ISECT gc_isect_moller_trumbore
-#define GC_TW_PACKED 0
+#define GC_TW_SIMD 0
 #define GC_TW_NAME(x) x##_counted_mt
 #include "traverse_impl.h"
 #undef GC_TW_COUNT
 #undef GC_TW_ISECT
-#undef GC_TW_PACKED
+#undef GC_TW_SIMD
 #undef GC_TW_NAME
 
 #define GC_TW_COUNT 1
 #define GC_TW_ISECT gc_isect_watertight
-#define GC_TW_PACKED GC_WT_PACKED
+#define GC_TW_SIMD GC_WT_SIMD
 #define GC_TW_NAME(x) x##_counted_wt
 #include "traverse_impl.h"
 #undef GC_TW_COUNT
 #undef GC_TW_ISECT
-#undef GC_TW_PACKED
+#undef GC_TW_SIMD
 #undef GC_TW_NAME
 
-/* Store one ray's hit (as the mesh's face index) and return its share of the checksum. */
-static inline double record_hit(const gc_grid *g, const gc_hit *h, int64_t k, double *t_out, int32_t *prim_out)
+/* Store one ray's hit (the mesh's face index, or -1) and return its share of the checksum. */
+static inline double record_hit(const gc_hit *h, int64_t k, double *t_out, int32_t *prim_out)
 {
-    const int32_t id = h->prim >= 0 ? g->tri_id[h->prim] : -1;
+    const int32_t id = h->prim;
     if (t_out) {
         t_out[k] = h->t;
         prim_out[k] = id;
@@ -114,8 +135,77 @@ static inline double record_hit(const gc_grid *g, const gc_hit *h, int64_t k, do
     return (id >= 0) ? h->t + (double)id : -1.0;
 }
 
+/* Which sign stage the timed watertight twin runs: GC_ISA_UNSET until the
+ * first batch (or gc_traverse_set_isa) decides. */
+enum { GC_ISA_UNSET = -1, GC_ISA_SSE2 = 0, GC_ISA_AVX2 = 1 };
+static int gc_isa = GC_ISA_UNSET;
+
+static int host_has_avx2(void)
+{
+#if defined(GC_HAVE_AVX2_WATERTIGHT)
+    __builtin_cpu_init();
+    return __builtin_cpu_supports("avx2") != 0;
+#else
+    return 0;
+#endif
+}
+
+static int isa_in_use(void)
+{
+    if (gc_isa == GC_ISA_UNSET) {
+        gc_isa = host_has_avx2() ? GC_ISA_AVX2 : GC_ISA_SSE2;
+    }
+    return gc_isa;
+}
+
+const char *gc_traverse_isa(void)
+{
+#if GC_WT_SIMD
+    return isa_in_use() == GC_ISA_AVX2 ? "avx2" : "sse2";
+#else
+    return "scalar";
+#endif
+}
+
+gc_status gc_traverse_set_isa(const char *isa, char *err)
+{
+    if (!isa) {
+        gc_set_error(err, "no instruction set named");
+        return GC_ERR_ARGUMENT;
+    }
+    if (!strcmp(isa, "auto")) {
+        gc_isa = GC_ISA_UNSET;
+        (void)isa_in_use();
+        return GC_OK;
+    }
+#if GC_WT_SIMD
+    if (!strcmp(isa, "sse2")) {
+        gc_isa = GC_ISA_SSE2;
+        return GC_OK;
+    }
+    if (!strcmp(isa, "avx2")) {
+        if (!host_has_avx2()) {
+            gc_set_error(err, "this %s does not have AVX2",
+#if defined(GC_HAVE_AVX2_WATERTIGHT)
+                         "CPU"
+#else
+                         "build"
+#endif
+            );
+            return GC_ERR_ARGUMENT;
+        }
+        gc_isa = GC_ISA_AVX2;
+        return GC_OK;
+    }
+    gc_set_error(err, "unknown instruction set '%.32s' (auto, sse2 or avx2)", isa);
+#else
+    gc_set_error(err, "unknown instruction set '%.32s' (this build has only auto)", isa);
+#endif
+    return GC_ERR_ARGUMENT;
+}
+
 /* Trace rays [0, n) with the timed twin; returns the checksum of the results.
- * The intersector is chosen once, outside the loop. */
+ * The intersector and the instruction set are chosen once, outside the loop. */
 static double trace_batch_timed(const gc_grid *g, int64_t n, const double *orig, const double *dir,
                                 double *t_out, int32_t *prim_out, gc_mail *mail)
 {
@@ -123,16 +213,26 @@ static double trace_batch_timed(const gc_grid *g, int64_t n, const double *orig,
     gc_ray r;
     gc_hit h;
     if (g->intersector == GC_WATERTIGHT) {
+#if defined(GC_HAVE_AVX2_WATERTIGHT)
+        if (isa_in_use() == GC_ISA_AVX2) {
+            for (int64_t k = 0; k < n; ++k) {
+                gc_ray_prepare(&r, orig + 3 * k, dir + 3 * k);
+                trace_timed_wt_avx2(g, &r, &h, mail);
+                sum += record_hit(&h, k, t_out, prim_out);
+            }
+            return sum;
+        }
+#endif
         for (int64_t k = 0; k < n; ++k) {
             gc_ray_prepare(&r, orig + 3 * k, dir + 3 * k);
             trace_timed_wt(g, &r, &h, mail);
-            sum += record_hit(g, &h, k, t_out, prim_out);
+            sum += record_hit(&h, k, t_out, prim_out);
         }
     } else {
         for (int64_t k = 0; k < n; ++k) {
             gc_ray_prepare(&r, orig + 3 * k, dir + 3 * k);
             trace_timed_mt(g, &r, &h, mail);
-            sum += record_hit(g, &h, k, t_out, prim_out);
+            sum += record_hit(&h, k, t_out, prim_out);
         }
     }
     return sum;
@@ -186,7 +286,7 @@ gc_status gc_count(const gc_grid *g, int64_t n, const double *origins, const dou
             t[k] = h.t;
         }
         if (prim) {
-            prim[k] = h.prim >= 0 ? g->tri_id[h.prim] : -1;
+            prim[k] = h.prim;
         }
         if (steps) {
             steps[k] = cnt.steps;

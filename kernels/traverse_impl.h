@@ -4,8 +4,11 @@
  *   GC_TW_COUNT  0 for the timed twin (counts compile away), 1 for the instrumented twin;
  *   GC_TW_ISECT  the ray/triangle test, gc_isect_moller_trumbore or gc_isect_watertight;
  *   GC_TW_NAME(x) the suffixing macro that names this instance's functions;
- *   GC_TW_PACKED 1 to test a cell's triangles two at a time with the two-lane
- *                sign stage (watertight on SSE2), 0 for one at a time.
+ *   GC_TW_SIMD   how the watertight test's sign stage runs over a pack of
+ *                GC_LANES triangles: 0 one triangle at a time (any intersector),
+ *                2 two lanes at a time (SSE2), 4 four at once (AVX2);
+ *   GC_TW_ATTR   attributes of this instance's functions (the AVX2 instance is
+ *                compiled for AVX2 whatever the build's flags), or nothing.
  *
  * 3D-DDA after Amanatides and Woo, "A Fast Voxel Traversal Algorithm for Ray
  * Tracing", Eurographics 1987.  A node is walked over the ray interval [ta, tb]
@@ -17,7 +20,7 @@
  * before that point is stored in a cell already visited.
  */
 
-static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *r, double ta,
+GC_TW_ATTR static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *r, double ta,
                              double tb, gc_hit *hit, gc_mail *mail
 #if GC_TW_COUNT
                              ,
@@ -74,11 +77,13 @@ static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *
     const int64_t first = (int64_t)nd->first_cell;
     const int64_t end = first + axis_stride[2] * (int64_t)nd->n[2];
     const gc_cell *cells = g->cells;
-    const uint32_t *refs = g->refs;
     const gc_pack *ref_tris = g->ref_tris;
-#if GC_TW_PACKED
-    gc_ray2 ray2;
-    gc_ray2_prepare(&ray2, &ray);
+#if GC_TW_SIMD == 4
+    gc_ray4 rayv;
+    gc_ray4_prepare(&rayv, &ray);
+#elif GC_TW_SIMD == 2
+    gc_ray2 rayv;
+    gc_ray2_prepare(&rayv, &ray);
 #endif
     /* the axis whose boundary comes first: x if tx <= ty and tx <= tz, else y
      * if ty <= tz, else z (ties go to the earlier axis), indexed by the three
@@ -118,75 +123,77 @@ static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *
             best_t = hit->t;
             best_prim = hit->prim;
         } else if (cell.count != 0) {
-            const uint32_t *ref = refs + cell.begin;
+            /* best_prim holds the mesh's face index, read from the pack beside
+             * the triangle's coordinates */
             if (mail) {
-                /* the lane view steps to the next lane, or to lane 0 of the next pack */
-                const double *tv = GC_REF_TRI(ref_tris, cell.begin);
+                const gc_pack *pk = ref_tris + cell.begin / GC_LANES;
                 uint32_t lane = cell.begin % GC_LANES;
                 for (uint32_t k = 0; k < cell.count; ++k) {
-                    const uint32_t prim = ref[k];
+                    const int32_t prim = pk->id[lane];
                     if (mail->stamp[prim] != mail->ray) {
                         mail->stamp[prim] = mail->ray;
 #if GC_TW_COUNT
                         cnt->tests++;
 #endif
                         double t;
-                        if (GC_TW_ISECT(&ray, tv, best_t, &t)) {
+                        if (GC_TW_ISECT(&ray, &pk->c[0][lane], best_t, &t)) {
                             best_t = t;
-                            best_prim = (int32_t)prim;
+                            best_prim = prim;
                         }
                     }
                     const uint32_t wrap = ++lane == GC_LANES;
                     lane = wrap ? 0 : lane;
-                    tv += wrap ? 9 * GC_LANES - (GC_LANES - 1) : 1;
+                    pk += wrap;
                 }
             } else {
 #if GC_TW_COUNT
                 cnt->tests += cell.count;
 #endif
-#if GC_TW_PACKED
-                /* Whole packs covering [begin, end): the sign stage of both lanes
+#if GC_TW_SIMD
+                /* Whole packs covering [begin, end): the sign stage of every lane
                  * at once, then the rest of the test for each lane that passed,
                  * in reference order, so each sees the best hit of those before
                  * it exactly as one at a time would.  Lanes outside the cell are
                  * masked off. */
+                const int full = (1 << GC_LANES) - 1;
                 const uint32_t last = cell.begin + cell.count - 1;
                 const gc_pack *pk = ref_tris + cell.begin / GC_LANES;
                 const gc_pack *const pk_last = ref_tris + last / GC_LANES;
-                int keep = 3 & (3 << (cell.begin % GC_LANES)); /* lanes of this cell */
-                const int keep_last = 3 >> (GC_LANES - 1 - last % GC_LANES);
+                int keep = full & (full << (cell.begin % GC_LANES)); /* lanes of this cell */
+                const int keep_last = full >> (GC_LANES - 1 - last % GC_LANES);
                 for (;; ++pk) {
                     if (pk == pk_last) {
                         keep &= keep_last;
                     }
-                    int m = gc_isect_watertight_signs2(&ray2, &pk->c[0][0]) & keep;
-                    if (m) {
-                        const uint32_t k0 = (uint32_t)(pk - ref_tris) * GC_LANES;
-                        for (int lane = 0; m; ++lane, m >>= 1) {
-                            double t;
-                            if ((m & 1) && gc_isect_watertight_finish_inline(&ray, &pk->c[0][lane], best_t, &t)) {
-                                best_t = t;
-                                best_prim = (int32_t)refs[k0 + (uint32_t)lane];
-                            }
+#if GC_TW_SIMD == 4
+                    int m = gc_isect_watertight_signs_avx2(&rayv, &pk->c[0][0]) & keep;
+#else
+                    int m = gc_isect_watertight_signs_sse2(&rayv, &pk->c[0][0]) & keep;
+#endif
+                    for (int lane = 0; m; ++lane, m >>= 1) {
+                        double t;
+                        if ((m & 1) && gc_isect_watertight_finish_inline(&ray, &pk->c[0][lane], best_t, &t)) {
+                            best_t = t;
+                            best_prim = pk->id[lane];
                         }
                     }
                     if (pk == pk_last) {
                         break;
                     }
-                    keep = 3;
+                    keep = full;
                 }
 #else
-                const double *tv = GC_REF_TRI(ref_tris, cell.begin);
+                const gc_pack *pk = ref_tris + cell.begin / GC_LANES;
                 uint32_t lane = cell.begin % GC_LANES;
                 for (uint32_t k = 0; k < cell.count; ++k) {
                     double t;
-                    if (GC_TW_ISECT(&ray, tv, best_t, &t)) {
+                    if (GC_TW_ISECT(&ray, &pk->c[0][lane], best_t, &t)) {
                         best_t = t;
-                        best_prim = (int32_t)ref[k];
+                        best_prim = pk->id[lane];
                     }
                     const uint32_t wrap = ++lane == GC_LANES;
                     lane = wrap ? 0 : lane;
-                    tv += wrap ? 9 * GC_LANES - (GC_LANES - 1) : 1;
+                    pk += wrap;
                 }
 #endif
             }
@@ -206,7 +213,7 @@ static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *
 }
 
 /* First hit of one prepared ray. */
-static void GC_TW_NAME(trace)(const gc_grid *g, const gc_ray *r, gc_hit *hit, gc_mail *mail
+GC_TW_ATTR static void GC_TW_NAME(trace)(const gc_grid *g, const gc_ray *r, gc_hit *hit, gc_mail *mail
 #if GC_TW_COUNT
                               ,
                               gc_counts *cnt

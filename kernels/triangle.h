@@ -197,11 +197,12 @@ GC_INLINE void gc_ray2_prepare(gc_ray2 *q, const gc_ray *r)
     q->sy = _mm_set1_pd(r->sy);
 }
 
-/* The rejection stage of gc_isect_watertight for both triangles of a pack at
- * once: lane l of every vector is exactly the scalar test's value for the
- * pack's triangle l (the same IEEE operations in the same order; no
- * contraction).  Returns bit l set when lane l's ray line passes through its
- * triangle; gc_isect_watertight_finish decides the rest for that lane. */
+/* The rejection stage of gc_isect_watertight for two neighbouring lanes of a
+ * pack at once (c points at the first lane's coordinate 0): lane l of every
+ * vector is exactly the scalar test's value for that lane's triangle (the same
+ * IEEE operations in the same order; no contraction).  Returns bit l set when
+ * lane l's ray line passes through its triangle; gc_isect_watertight_finish
+ * decides the rest for that lane. */
 GC_INLINE int gc_isect_watertight_signs2(const gc_ray2 *q, const double *c)
 {
     const double *px = c + q->kx, *py = c + q->ky, *pz = c + q->kz;
@@ -222,6 +223,71 @@ GC_INLINE int gc_isect_watertight_signs2(const gc_ray2 *q, const double *c)
     const __m128d le = _mm_and_pd(_mm_and_pd(_mm_cmple_pd(u, zero), _mm_cmple_pd(v, zero)), _mm_cmple_pd(w, zero));
     return _mm_movemask_pd(_mm_or_pd(ge, le));
 }
+
+/* The rejection stage for a whole pack (c = &pack->c[0][0]): its GC_LANES
+ * lanes two at a time.  Bit l of the result is lane l's verdict. */
+GC_INLINE int gc_isect_watertight_signs_sse2(const gc_ray2 *q, const double *c)
+{
+    int m = 0;
+    for (int l = 0; l < GC_LANES; l += 2) {
+        m |= gc_isect_watertight_signs2(q, c + l) << l;
+    }
+    return m;
+}
+
+/* AVX2: the same stage over four lanes at once.  Compiled for AVX2 whatever
+ * the build's flags (a function attribute) and called only after the host was
+ * found to have it (traverse.c); same operations per lane, so the same bits. */
+#if defined(__GNUC__) && (defined(__x86_64__) || defined(__i386__))
+#include <immintrin.h>
+#define GC_HAVE_AVX2_WATERTIGHT 1
+#define GC_AVX2 __attribute__((target("avx2")))
+_Static_assert(GC_LANES == 4, "the AVX2 sign stage reads four lanes at once");
+
+typedef struct {
+    __m256d ox, oy, oz, sx, sy;
+    int64_t kx, ky, kz;
+} gc_ray4;
+
+GC_AVX2 GC_INLINE void gc_ray4_prepare(gc_ray4 *q, const gc_ray *r)
+{
+    q->kx = GC_LANES * r->kx;
+    q->ky = GC_LANES * r->ky;
+    q->kz = GC_LANES * r->kz;
+    q->ox = _mm256_set1_pd(r->o[r->kx]);
+    q->oy = _mm256_set1_pd(r->o[r->ky]);
+    q->oz = _mm256_set1_pd(r->o[r->kz]);
+    q->sx = _mm256_set1_pd(r->sx);
+    q->sy = _mm256_set1_pd(r->sy);
+}
+
+GC_AVX2 GC_INLINE int gc_isect_watertight_signs_avx2(const gc_ray4 *q, const double *c)
+{
+    const double *px = c + q->kx, *py = c + q->ky, *pz = c + q->kz;
+    const __m256d a_z = _mm256_sub_pd(_mm256_loadu_pd(pz), q->oz);
+    const __m256d b_z = _mm256_sub_pd(_mm256_loadu_pd(pz + 3 * GC_LANES), q->oz);
+    const __m256d c_z = _mm256_sub_pd(_mm256_loadu_pd(pz + 6 * GC_LANES), q->oz);
+    const __m256d ax = _mm256_sub_pd(_mm256_sub_pd(_mm256_loadu_pd(px), q->ox), _mm256_mul_pd(q->sx, a_z));
+    const __m256d ay = _mm256_sub_pd(_mm256_sub_pd(_mm256_loadu_pd(py), q->oy), _mm256_mul_pd(q->sy, a_z));
+    const __m256d bx =
+        _mm256_sub_pd(_mm256_sub_pd(_mm256_loadu_pd(px + 3 * GC_LANES), q->ox), _mm256_mul_pd(q->sx, b_z));
+    const __m256d by =
+        _mm256_sub_pd(_mm256_sub_pd(_mm256_loadu_pd(py + 3 * GC_LANES), q->oy), _mm256_mul_pd(q->sy, b_z));
+    const __m256d cx =
+        _mm256_sub_pd(_mm256_sub_pd(_mm256_loadu_pd(px + 6 * GC_LANES), q->ox), _mm256_mul_pd(q->sx, c_z));
+    const __m256d cy =
+        _mm256_sub_pd(_mm256_sub_pd(_mm256_loadu_pd(py + 6 * GC_LANES), q->oy), _mm256_mul_pd(q->sy, c_z));
+    const __m256d u = _mm256_sub_pd(_mm256_mul_pd(cx, by), _mm256_mul_pd(cy, bx));
+    const __m256d v = _mm256_sub_pd(_mm256_mul_pd(ax, cy), _mm256_mul_pd(ay, cx));
+    const __m256d w = _mm256_sub_pd(_mm256_mul_pd(bx, ay), _mm256_mul_pd(by, ax));
+    const __m256d zero = _mm256_setzero_pd();
+    const __m256d ge = _mm256_and_pd(_mm256_and_pd(_mm256_cmp_pd(u, zero, _CMP_GE_OQ), _mm256_cmp_pd(v, zero, _CMP_GE_OQ)),
+                                     _mm256_cmp_pd(w, zero, _CMP_GE_OQ));
+    const __m256d le = _mm256_and_pd(_mm256_and_pd(_mm256_cmp_pd(u, zero, _CMP_LE_OQ), _mm256_cmp_pd(v, zero, _CMP_LE_OQ)),
+                                     _mm256_cmp_pd(w, zero, _CMP_LE_OQ));
+    return _mm256_movemask_pd(_mm256_or_pd(ge, le));
+}
+#endif
 #endif
 
 #endif /* GC_TRIANGLE_H */

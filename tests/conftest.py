@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +18,35 @@ def shared_mesh(name: str) -> Path:
     if not path.exists():
         pytest.skip(f"real meshes not available: {path} is absent (../shared is beside the checkout in CI only)")
     return path
+
+
+def traverse_isas() -> list[str]:
+    """The sign stages the timed twin can run on this host ('sse2', and 'avx2' where the CPU has it)."""
+    from calibrate import _kernels
+
+    found = []
+    try:
+        for isa in ("sse2", "avx2"):
+            try:
+                _kernels.set_traverse_isa(isa)
+                found.append(isa)
+            except ValueError:
+                pass
+    finally:
+        _kernels.set_traverse_isa("auto")
+    return found
+
+
+@contextlib.contextmanager
+def traverse_isa(isa: str):
+    """Run the timed twin with the given sign stage inside the block; the host's best after."""
+    from calibrate import _kernels
+
+    _kernels.set_traverse_isa(isa)
+    try:
+        yield
+    finally:
+        _kernels.set_traverse_isa("auto")
 
 
 def first_hit_disagreements(t, prim, t_ref, prim_ref, rel_tol: float = 1e-9):

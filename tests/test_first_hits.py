@@ -5,7 +5,7 @@ lines through the box, camera rays, rays leaving the surface) are traced by
 brute force once per intersector; then through uniform grids from 1x1x1 to
 fine and nested grids of depth 2 and 3, with and without mailboxing.  Every
 ray's first hit must agree, and the timed and instrumented twins must return
-identical hits.
+identical hits, on every sign stage (SSE2, AVX2) the host's CPU runs.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from calibrate._grid import resolution_for_cells
 from calibrate.rays import camera, isotropic, surface
 from calibrate.scenes import builtin_names
 
-from conftest import first_hit_disagreements, shared_mesh
+from conftest import first_hit_disagreements, shared_mesh, traverse_isa, traverse_isas
 
 N_RAYS = 100_000
 #: real meshes in the sweep: a compact organic surface, a CAD part, a long-skinny soup, a room
@@ -75,6 +75,10 @@ def check_scene(scene: Scene, seed: int):
                     continue  # one cell is brute force again: the twins are compared on every other grid
                 tc, pc, steps, tests, subgrids = grid.count(o, d, hits=True)
                 assert np.array_equal(tc, t) and np.array_equal(pc, prim), f"{where}: twins disagree"
+                for isa in traverse_isas():
+                    with traverse_isa(isa):
+                        ti, pi = grid.intersect(o, d)
+                    assert np.array_equal(ti, t) and np.array_equal(pi, prim), f"{where}: {isa} disagrees"
                 if grid.info["levels"] == 1:
                     assert not subgrids.any(), f"{where}: a uniform grid entered subgrids"
                 if mailbox:
@@ -91,3 +95,31 @@ def test_builtin_scene_first_hits_equal_brute_force(index, name):
 @pytest.mark.parametrize("index,name", list(enumerate(REAL_MESHES)))
 def test_real_mesh_first_hits_equal_brute_force(index, name):
     check_scene(Scene.from_file(shared_mesh(name)), seed=2000 + 10 * index)
+
+
+@pytest.mark.parametrize("index,name", list(enumerate(["sphere", "cylinder1996"])))
+def test_every_sign_stage_gives_the_same_hits(index, name):
+    """The timed twin's SSE2 and AVX2 sign stages (where the CPU has AVX2) and the
+    instrumented twin return the same hits, bit for bit, on uniform and nested grids."""
+    from calibrate import _kernels
+
+    scene = Scene.builtin(name)
+    o, d = ray_mix(scene, seed=3000 + 10 * index)
+    isas = traverse_isas()
+    assert "sse2" in isas and _kernels.traverse_isa() == isas[-1], (isas, _kernels.traverse_isa())
+    for grid in (Grid.uniform(scene, resolution_for_cells(scene.n_triangles, scene.box_hi - scene.box_lo)),
+                 Grid.nested(scene, levels=2)):
+        tc, pc, _, _, _ = grid.count(o, d, hits=True)
+        assert np.isfinite(tc).mean() > 0.05
+        for isa in isas:
+            with traverse_isa(isa):
+                t, prim = grid.intersect(o, d)
+            assert np.array_equal(t, tc) and np.array_equal(prim, pc), f"{name} {grid.info['levels']} levels: {isa}"
+
+
+def test_sign_stage_switch_refuses_unknown_names():
+    from calibrate import _kernels
+
+    with pytest.raises(ValueError, match="unknown instruction set 'neon'"):
+        _kernels.set_traverse_isa("neon")
+    assert _kernels.traverse_isa() in ("avx2", "sse2")

@@ -317,8 +317,8 @@ def test_memory_estimate_uses_the_kernels_layout(i, res):
 
     scene = Scene.builtin("scattered-compact")
     info = Grid.uniform(scene, res).info
-    est = _memory_bytes(scene.n_triangles, res[0] * res[1] * res[2], info["n_refs"], 1)
-    # the kernel adds only its fixed-size gc_grid header
+    est = _memory_bytes(res[0] * res[1] * res[2], info["n_refs"], 1)
+    # the kernel adds only its fixed-size gc_grid header and the last pack's unused lanes
     assert 0 <= info["memory_bytes"] - est < 1024, (info["memory_bytes"], est)
 
 

@@ -195,8 +195,8 @@ static void resolution_for(double cells, const double ext[3], int32_t res[3])
     }
 }
 
-/* FNV-1a digest of the grid's cells and references: two builds that store the
- * same references in the same order have the same digest. */
+/* FNV-1a digest of the grid's cells and the face index of each reference: two
+ * builds that store the same references in the same order have the same digest. */
 static uint64_t grid_digest(const gc_grid *g)
 {
     uint64_t h = 1469598103934665603ull;
@@ -204,9 +204,12 @@ static uint64_t grid_digest(const gc_grid *g)
     for (size_t k = 0; k < (size_t)g->n_cells * sizeof(gc_cell); ++k) {
         h = (h ^ p[k]) * 1099511628211ull;
     }
-    p = (const unsigned char *)g->refs;
-    for (size_t k = 0; k < (size_t)g->n_refs * sizeof(uint32_t); ++k) {
-        h = (h ^ p[k]) * 1099511628211ull;
+    for (int64_t k = 0; k < g->n_refs; ++k) {
+        const int32_t id = g->ref_tris[k / GC_LANES].id[k % GC_LANES];
+        p = (const unsigned char *)&id;
+        for (size_t b = 0; b < sizeof id; ++b) {
+            h = (h ^ p[b]) * 1099511628211ull;
+        }
     }
     return h;
 }
