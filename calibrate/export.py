@@ -33,7 +33,7 @@ MAX_COMMENT_FIELD = 160
 #: Fingerprint keys shown in the header's provenance, with their labels.
 PROVENANCE_KEYS = (("cpu_model", "CPU"), ("logical_cores", "logical cores"), ("governor", "frequency governor"),
                    ("os", "OS"), ("kernel", "OS kernel"), ("date_utc", "date (UTC)"),
-                   ("kernel_build", "kernels built with"))
+                   ("kernel_build", "kernels built with"), ("kernel_isa", "traversal's instruction set"))
 #: Constants of a calibration, in header order: (key, macro, what, unit).
 CONSTANTS = (("t_setup_ns", "GRIDCAL_T_SETUP_NS", "T_setup, cost of one ray's set-up", "ns per ray"),
              ("t_step_ns", "GRIDCAL_T_STEP_NS", "T_step, cost of one cell step", "ns per cell step"),

@@ -58,7 +58,8 @@ def make_calibration(cpu="Test CPU @ 3.0GHz", **fp) -> dict:
     row = [PLANTED["t_setup_ns"], PLANTED["t_step_ns"], PLANTED["t_int_ns"], PLANTED["t_sub_ns"], 0.1]
     cal = dict(schema_version=calfile.SCHEMA_VERSION,
                fingerprint=dict(cpu_model=cpu, date_utc="2026-11-22T06:00:00+00:00",
-                                kernel_build="gcc 12; -std=c99 -O2 -ffp-contract=off -fno-fast-math", **fp),
+                                kernel_build="gcc 12; -std=c99 -O2 -ffp-contract=off -fno-fast-math",
+                                kernel_isa="avx2", **fp),
                constants=consts,
                samples=dict(columns=FOUR_CONSTANT_COLUMNS, values=[row, row]),
                diagnostics=dict(converged=True), measurements=[], meta={})
@@ -497,7 +498,8 @@ def test_cli_writes_the_header_from_the_default_calibration(tmp_path, monkeypatc
     text = (tmp_path / "grid_tuning.h").read_text()
     assert "#define GRIDCAL_RATIO 0.9263\n" in text and "#ifndef GRIDCAL_T_INT_NS" in text
     assert "95% interval [16.352, 24.528]" in text  # T_int's interval in its comment
-    for word in ("Test CPU @ 3.0GHz", "2026-11-22", "-ffp-contract=off", "schema version: 1"):
+    for word in ("Test CPU @ 3.0GHz", "2026-11-22", "-ffp-contract=off", "instruction set: avx2",
+                 "schema version: 1"):
         assert word in text
     for fn in FUNCTIONS:
         assert f" {fn}(" in text
