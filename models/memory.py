@@ -15,8 +15,9 @@ expected number of cache lines a ray fetches from beyond the cache:
     lines = miss_fraction(F, C) * (steps * STEP_LINES + tests * TEST_LINES)
 
 - A step reads one cell record (8 bytes): one line, ``STEP_LINES``.
-- A test reads one reference's copy of its triangle (72 bytes, stored with the
-  reference): ``TEST_LINES = 72 / 64`` lines.
+- A test reads one reference's copy of its triangle (72 bytes of coordinates,
+  stored with the reference in a pack of four; the 4-byte face index beside
+  them is read only on a hit): ``TEST_LINES = 72 / 64`` lines.
 - ``miss_fraction(F, C) = max(0, 1 - C / F)``: the share of a grid of F bytes
   that a cache of C bytes cannot hold, i.e. the chance that a line touched at
   random is not cached.  0 while the grid fits.
