@@ -47,7 +47,7 @@ SUBGRID_SIDES = (2, 4, 8, 16)
 #: Built-in scenes of the in-context suite.
 CONTEXT_SCENES = ("sphere", "cylinder1996", "scattered-compact", "scattered-skinny", "cylinder196")
 #: Total cells as multiples of N for the in-context uniform grids (coarse to fine).
-CONTEXT_CELLS_PER_TRIANGLE = (1 / 2, 1.0, 2.0, 4.0, 8.0)
+CONTEXT_CELLS_PER_TRIANGLE = (1 / 8, 1 / 2, 1.0, 2.0, 4.0, 8.0)
 #: Extra, finer multiples for scenes of long skinny triangles, whose optimum is O(N^1.5) cells.
 CONTEXT_SKINNY_EXTRA = (16.0, 32.0)
 #: Nesting depths of the in-context nested grids.
