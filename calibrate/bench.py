@@ -647,6 +647,9 @@ def cmd_bench(args) -> int:
         result["pinning"] = pin.note
         result["clock"] = args.clock
     result["constants"] = source_note
+    from ._kernels import traverse_isa
+
+    result["kernel_isa"] = traverse_isa()
     from .predict import json_ready
 
     result = json_ready(result)
@@ -699,7 +702,8 @@ def _print_bench(result: dict) -> None:
                                         f"{100 * s['min_agreement']:.1f}% of rays for some contender")
     console.print(f"first hits agree: both miss, or t within {T_REL_TOL:g} relative on the same triangle or a tie; "
                   f"needed on >= {100 * MIN_AGREEMENT:.1f}% of rays. Embree: {EmbreeTracer.api}. "
-                  f"{result['constants']}; {result['pinning']}; clock {result['clock']}")
+                  f"{result['constants']}; {result['pinning']}; clock {result['clock']}; "
+                  f"gridcal's triangle tests on {result['kernel_isa']}")
 
 
 def _print_scale(result: dict) -> None:
@@ -733,4 +737,5 @@ def _print_scale(result: dict) -> None:
                   "triangle)\n")
     for n, why in result.get("skipped", {}).items():
         out.write(f"skipped {n}: {why}\n")
-    out.write(f"{result['constants']}; {result['pinning']}; clock {result['clock']}\n")
+    out.write(f"{result['constants']}; {result['pinning']}; clock {result['clock']}; "
+              f"gridcal's triangle tests on {result['kernel_isa']}\n")

@@ -79,6 +79,7 @@ def test_json_fields_for_a_small_scene(capsys):
                  "--no-trimesh", "--ratio", "1"])
     assert code == 0
     out = json.loads(capsys.readouterr().out)
+    assert out["kernel_isa"] in ("avx2", "sse2", "scalar")
     (s,) = out["scenes"]
     assert s["scene"] == "cylinder196" and s["triangles"] == 196
     assert set(s["ray_sets"]) == {"camera"}
