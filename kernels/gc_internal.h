@@ -58,8 +58,6 @@ typedef struct {
     int32_t id[GC_LANES];
 } gc_pack; /* 304 bytes */
 #define GC_TV(t, c) ((t)[GC_LANES * (c)])
-/* the lane view of reference k */
-#define GC_REF_TRI(packs, k) (&(packs)[(k) / GC_LANES].c[0][(k) % GC_LANES])
 /* bytes of the per-reference triangles of n references */
 #define GC_PACK_BYTES(n) ((((uint64_t)(n) + GC_LANES - 1) / GC_LANES) * (uint64_t)sizeof(gc_pack))
 
