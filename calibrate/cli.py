@@ -206,13 +206,14 @@ def cmd_run(args) -> int:
                                  progress=bar, status=bar.status)
     cal = result.calibration
     if args.json:
+        _print_warnings(result.warnings)
         _print_json(dict(constants=cal["constants"], wall_s=result.wall_s, holdout_mare=result.holdout_mare,
                          holdout_mare_pooled=result.holdout_mare_pooled,
                          holdout_mare_by_rays=result.holdout_mare_by_rays or {},
                          cv_mare=None if math.isnan(result.cv_mare) else result.cv_mare,
                          cv_mare_by_rays=result.cv_mare_by_rays or {},
                          constants_by_rays=_constants_by_rays(cal),
-                         ratio_rel_width=result.ratio_rel_width, out=str(out)))
+                         ratio_rel_width=result.ratio_rel_width, warnings=list(result.warnings), out=str(out)))
         return 0
     console.print(_constants_table(cal, f"calibration of this host ({cal['meta']['intersector']} intersector), "
                                         "all ray sets"))
@@ -229,12 +230,17 @@ def cmd_run(args) -> int:
                      f"{100 * result.holdout_mare_pooled:.1f}%)" if result.holdout_mare_by_rays else ""))
     _print_cross_validated(console, cal)
     console.print(f"wall time {time.monotonic() - t0:.1f} s; written to {out}")
-    for w in result.warnings[:10]:
-        _console(stderr=True).print(f"[yellow]warning:[/yellow] {w}")
-    if len(result.warnings) > 10:
-        _console(stderr=True).print(f"[yellow]... and {len(result.warnings) - 10} more warnings in the file's "
-                                    "measurements[/yellow]")
+    _print_warnings(result.warnings)
     return 0
+
+
+def _print_warnings(warnings: list) -> None:
+    """A run's warnings on stderr, the first ten (all of them are in --json's ``warnings``)."""
+    for w in warnings[:10]:
+        _console(stderr=True).print(f"[yellow]warning:[/yellow] {w}")
+    if len(warnings) > 10:
+        _console(stderr=True).print(f"[yellow]... and {len(warnings) - 10} more warnings in the file's "
+                                    "measurements[/yellow]")
 
 
 def cmd_fit(args) -> int:

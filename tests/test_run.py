@@ -158,6 +158,11 @@ def test_run_json_and_show(small_suite, tmp_path, capsys):
     for key in ("t_setup_ns", "t_step_ns", "t_int_ns", "t_sub_ns", "ratio"):
         assert key in printed["constants"]
     assert printed["wall_s"] > 0
+    # the run's warnings are in the JSON and, as without --json, on stderr
+    assert isinstance(printed["warnings"], list) and all(isinstance(w, str) for w in printed["warnings"])
+    err = " ".join(captured.err.split())
+    for w in printed["warnings"][:10]:
+        assert " ".join(w.split())[:60] in err, (w, captured.err)
     assert main(["show", str(out), "--json", "--plot", str(tmp_path / "fig")]) == 0
     shown = json.loads(capsys.readouterr().out)
     assert shown["constants"] == calfile.load(out)["constants"]
