@@ -549,7 +549,7 @@ def _nested_plan(scene, stats, k: Constants, L):
                 c = nested_counts(geom, stats.box_lo, stats.box_hi, _scaled(centre, scales[i]), L, k.ratio,
                                   overlap=overlap, corners=corners, leaves="analytic",
                                   overlap_test=triangle_box_overlap)
-                memo[i] = (k.cost(c.steps, c.tests, c.subgrids, _nested_memory_bytes(stats, c)), c)
+                memo[i] = (k.cost(c.steps, c.tests, c.subgrids, _nested_memory_bytes(c)), c)
             except TooManyPairs:
                 memo[i] = (math.inf, None)
         return memo[i][0]
@@ -573,13 +573,13 @@ def _nested_plan(scene, stats, k: Constants, L):
     return best, overlap, how
 
 
-def _nested_memory_bytes(stats, counts) -> int:
+def _nested_memory_bytes(counts) -> int:
     """Bytes of a nested structure from models.nested (as the kernel stores it)."""
     nodes = sum(info.grids for info in counts.per_level)
     return _memory_bytes(counts.cells, counts.refs, nodes)
 
 
-def _nested_levels(counts, n_triangles):
+def _nested_levels(counts):
     out = []
     for depth, info in enumerate(counts.per_level):
         res = np.asarray(info.resolutions).reshape(-1, 3)
@@ -599,13 +599,13 @@ def _nested_levels(counts, n_triangles):
 def _analytic_nested(scene, stats, k: Constants, L, mailbox):
     counts, overlap, how = _nested_plan(scene, stats, k, L)
     frac, _ = termination_fraction(stats)
-    ns0 = k.cost(counts.steps, counts.tests, counts.subgrids, _nested_memory_bytes(stats, counts))
+    ns0 = k.cost(counts.steps, counts.tests, counts.subgrids, _nested_memory_bytes(counts))
     sel = select_effects(stats, k.t_setup, k.t_step, k.t_int, mailbox=mailbox, termination=True, overlap="exact",
                          levels=L, subgrid_ns=k.t_sub * counts.subgrids * frac,
                          clustering_change=clustering_change(counts, stats, k.t_step, k.t_int, ns0))
     f = sel.terms.traversed_fraction
-    plan = dict(levels=_nested_levels(counts, stats.n_triangles), steps=f * counts.steps, tests=f * counts.tests,
-                subgrids=f * counts.subgrids, memory_bytes=_nested_memory_bytes(stats, counts),
+    plan = dict(levels=_nested_levels(counts), steps=f * counts.steps, tests=f * counts.tests,
+                subgrids=f * counts.subgrids, memory_bytes=_nested_memory_bytes(counts),
                 terms=sel.terms, counts=counts, overlap=overlap)
     effects = _effect_dicts(sel)
     if k.has_memory:
