@@ -161,16 +161,17 @@ def compiled_scene_stats(vertices, faces, *, threads: int = 2):
     stride = aspect_sample_stride(f.shape[0])
     if threads == 2:  # the two passes release the GIL: the edge grouping runs beside the sums
         with ThreadPoolExecutor(max_workers=1) as pool:
-            watertight = pool.submit(_kernels.mesh_watertight, v, f)
+            topology = pool.submit(_kernels.mesh_topology, v, f)
             sums = _kernels.mesh_sums(v, f, stride)
-            watertight = watertight.result()
+            watertight, positions = topology.result()
     else:
         sums = _kernels.mesh_sums(v, f, stride)
-        watertight = _kernels.mesh_watertight(v, f)
+        watertight, positions = _kernels.mesh_topology(v, f)
     return stats_from_sums(n_triangles=f.shape[0], box_lo=sums["box_lo"], box_hi=sums["box_hi"],
                            e1_axes=sums["e1"], e2_axes=sums["e2"], perimeters=sums["perimeters"],
                            pair_sums=sums["pair"], triple=sums["triple"], area=sums["area"], vol6=sums["vol6"],
-                           n_good=sums["n_good"], aspect_sample=sums["aspect_sample"], watertight=watertight)
+                           n_good=sums["n_good"], aspect_sample=sums["aspect_sample"], watertight=watertight,
+                           positions=positions)
 
 
 def triangle_box_overlap(corners, lo, hi) -> np.ndarray:
@@ -641,6 +642,16 @@ class Grid:
         if hits:
             return t, prim, steps, tests, subgrids
         return steps, tests, subgrids
+
+    def count_visits(self, origins, directions) -> np.ndarray:
+        """Occupied cells entered per ray, from the instrumented twin: (n,) uint32.
+
+        The cells holding triangles that each ray's walk tested, at every level (a
+        cell holding a subgrid is not one; its own cells are). Part of ``steps``
+        (:meth:`count`), on the same walk.
+        """
+        o, d = _check_rays(origins, directions)
+        return _kernels.count_visits(self._capsule, o, d)
 
     def bench(self, origins, directions, loops: int = 1) -> tuple[int, float]:
         """Trace the batch ``loops`` times in C; returns (elapsed ns, checksum)."""

@@ -327,6 +327,34 @@ static PyObject *py_count(PyObject *self, PyObject *args)
     return Py_BuildValue("(NNNNN)", out[0], out[1], out[2], out[3], out[4]);
 }
 
+static PyObject *py_count_visits(PyObject *self, PyObject *args)
+{
+    (void)self;
+    PyObject *cap;
+    PyArrayObject *o, *d;
+    if (parse_rays(args, "OOO", &cap, &o, &d, NULL) < 0) {
+        return NULL;
+    }
+    gc_grid *g = get_grid(cap);
+    npy_intp n = PyArray_DIM(o, 0);
+    PyArrayObject *out = g ? (PyArrayObject *)PyArray_SimpleNew(1, &n, NPY_UINT32) : NULL;
+    if (!out) {
+        Py_DECREF(o), Py_DECREF(d);
+        return NULL;
+    }
+    char err[GC_ERROR_LEN] = "";
+    gc_status st;
+    Py_BEGIN_ALLOW_THREADS st = gc_count_visits(g, (int64_t)n, PyArray_DATA(o), PyArray_DATA(d),
+                                                PyArray_DATA(out), err);
+    Py_END_ALLOW_THREADS Py_DECREF(o);
+    Py_DECREF(d);
+    if (st != GC_OK) {
+        Py_DECREF(out);
+        return raise_status(st, err);
+    }
+    return (PyObject *)out;
+}
+
 static PyObject *py_bench(PyObject *self, PyObject *args)
 {
     (void)self;
@@ -506,7 +534,7 @@ static PyObject *py_mesh_sums(PyObject *self, PyObject *args)
 #undef TRIPLE
 }
 
-static PyObject *py_mesh_watertight(PyObject *self, PyObject *args)
+static PyObject *py_mesh_topology(PyObject *self, PyObject *args)
 {
     (void)self;
     PyObject *vobj, *fobj;
@@ -522,15 +550,28 @@ static PyObject *py_mesh_watertight(PyObject *self, PyObject *args)
     gc_mesh mesh = {(const double *)PyArray_DATA(v), (int64_t)PyArray_DIM(v, 0),
                     (const int64_t *)PyArray_DATA(f), (int64_t)PyArray_DIM(f, 0)};
     int wt = 0;
+    int64_t positions = 0;
     char err[GC_ERROR_LEN] = "";
     gc_status st;
-    Py_BEGIN_ALLOW_THREADS st = gc_mesh_watertight(&mesh, &wt, err);
+    Py_BEGIN_ALLOW_THREADS st = gc_mesh_topology(&mesh, &wt, &positions, err);
     Py_END_ALLOW_THREADS Py_DECREF(v);
     Py_DECREF(f);
     if (st != GC_OK) {
         return raise_status(st, err);
     }
-    return PyBool_FromLong(wt);
+    return Py_BuildValue("(NL)", PyBool_FromLong(wt), (long long)positions);
+}
+
+static PyObject *py_mesh_watertight(PyObject *self, PyObject *args)
+{
+    PyObject *both = py_mesh_topology(self, args);
+    if (!both) {
+        return NULL;
+    }
+    PyObject *wt = PyTuple_GET_ITEM(both, 0);
+    Py_INCREF(wt);
+    Py_DECREF(both);
+    return wt;
 }
 
 static PyObject *py_timer_resolution_ns(PyObject *self, PyObject *args)
@@ -570,6 +611,10 @@ static PyMethodDef methods[] = {
     {"intersect", py_intersect, METH_VARARGS, "intersect(grid, origins, directions) -> (t, prim)"},
     {"count", py_count, METH_VARARGS,
      "count(grid, origins, directions) -> (t, prim, steps, tests, subgrids)"},
+    {"mesh_topology", py_mesh_topology, METH_VARARGS,
+     "mesh_topology(vertices, faces) -> (watertight, distinct positions)"},
+    {"count_visits", py_count_visits, METH_VARARGS,
+     "count_visits(grid, origins, directions) -> occupied cells entered per ray"},
     {"bench", py_bench, METH_VARARGS,
      "bench(grid, origins, directions, loops) -> (elapsed_ns, checksum)"},
     {"brute_force", py_brute_force, METH_VARARGS,

@@ -81,13 +81,15 @@ class Config:
     run: Callable = field(repr=False)
     ray_set: str = ""
     memory_bytes: int = 0
+    visits: int = 0
 
     def record(self) -> dict:
         """The JSON record of this configuration (without timings)."""
         return dict(name=self.name, kind=self.kind, suite=self.suite, scene=self.scene,
                     resolution=self.resolution, intersector=self.intersector, ray_set=self.ray_set,
                     rays=int(self.rays), steps=int(self.steps), tests=int(self.tests),
-                    subgrids=int(self.subgrids), memory_bytes=int(self.memory_bytes))
+                    subgrids=int(self.subgrids), memory_bytes=int(self.memory_bytes),
+                    visits=int(self.visits))
 
 
 def _res_label(res) -> str:
@@ -99,12 +101,13 @@ def _config(name, kind, suite, scene_name, res_label, intersector, grid: Grid, o
     """The configuration of ``grid`` on rays (o, d); ``copies``: more builds of the same grid,
     timed in turn with it (:class:`calibrate.protocol.Copies`)."""
     steps, tests, subgrids = grid.count(o, d)
+    visits = grid.count_visits(o, d)
     runs = [g.timed_batch(o, d, clock=TIMING_CLOCK) for g in (grid, *copies)]
     return Config(name=name, kind=kind, suite=suite, scene=scene_name, resolution=res_label,
                   intersector=intersector, rays=int(o.shape[0]), steps=int(steps.sum(dtype=np.int64)),
                   tests=int(tests.sum(dtype=np.int64)), subgrids=int(subgrids.sum(dtype=np.int64)),
                   run=runs[0] if len(runs) == 1 else Copies(runs), ray_set=ray_set,
-                  memory_bytes=int(grid.info["memory_bytes"]))
+                  memory_bytes=int(grid.info["memory_bytes"]), visits=int(visits.sum(dtype=np.int64)))
 
 
 def isolated_configs(intersector: str, seed: int = 0) -> list[Config]:

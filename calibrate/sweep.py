@@ -260,6 +260,7 @@ def _counts(grid: Grid, origins, directions) -> dict:
     steps, tests, subgrids = grid.count(origins, directions)
     info = grid.info
     return dict(steps=float(steps.mean()), tests=float(tests.mean()), subgrids=float(subgrids.mean()),
+                visits=float(grid.count_visits(origins, directions).mean()),
                 cells=int(info["n_cells"]), references=int(info["n_refs"]),
                 memory_bytes=int(info["memory_bytes"]))
 

@@ -157,6 +157,12 @@ gc_status gc_count(const gc_grid *grid, int64_t n, const double *origins,
                    const double *directions, double *t, int32_t *prim,
                    uint32_t *steps, uint32_t *tests, uint32_t *subgrids, char *err);
 
+/* The instrumented twin's count of occupied cells entered, per ray: the cells
+ * holding triangles that the walk tested (at every level; a cell holding a
+ * subgrid is not one of them, its own cells are).  The same walk as gc_count. */
+gc_status gc_count_visits(const gc_grid *grid, int64_t n, const double *origins,
+                          const double *directions, uint32_t *visits, char *err);
+
 /* Timed batch: trace the n rays `loops` times with the timed twin and return the
  * elapsed wall time (CLOCK_MONOTONIC, ns) around all loops and a checksum of every
  * result, so that no work can be optimised away. */
@@ -210,6 +216,12 @@ gc_status gc_mesh_sums_compute(const gc_mesh *mesh, int64_t ar_stride,
  * and edge offsets are 32-bit: more than 2^32 - 2 vertices or (2^32 - 2) / 3 faces
  * is GC_ERR_ARGUMENT. */
 gc_status gc_mesh_watertight(const gc_mesh *mesh, int *watertight, char *err);
+
+/* The same test, and *positions = the number of distinct vertex positions (every
+ * vertex given, referenced or not, merged as above).  A mesh whose triangles share
+ * their corners has about half as many positions as faces; one of separate
+ * triangles has three per face. */
+gc_status gc_mesh_topology(const gc_mesh *mesh, int *watertight, int64_t *positions, char *err);
 
 /* Resolution of the monotonic clock in ns. */
 int64_t gc_timer_resolution_ns(void);

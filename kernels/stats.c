@@ -488,15 +488,16 @@ static inline int edges_twice(const gc_mesh *mesh, const uint32_t *id, uint32_t 
     return 1;
 }
 
-gc_status gc_mesh_watertight(const gc_mesh *mesh, int *watertight, char *err)
+gc_status gc_mesh_topology(const gc_mesh *mesh, int *watertight, int64_t *positions, char *err)
 {
-    if (!mesh || !watertight) {
+    if (!mesh || !watertight || !positions) {
         if (err) {
-            snprintf(err, GC_ERROR_LEN, "gc_mesh_watertight: bad arguments");
+            snprintf(err, GC_ERROR_LEN, "gc_mesh_topology: bad arguments");
         }
         return GC_ERR_ARGUMENT;
     }
     *watertight = 0;
+    *positions = 0;
     const int64_t nv = mesh->n_vertices, nf = mesh->n_faces;
     if (nv >= (int64_t)UINT32_MAX || nf > ((int64_t)UINT32_MAX - 1) / 3) {
         if (err) { /* 32-bit ids and offsets: 50 GB of mesh or more */
@@ -506,6 +507,7 @@ gc_status gc_mesh_watertight(const gc_mesh *mesh, int *watertight, char *err)
         return GC_ERR_ARGUMENT;
     }
     if (nf == 0) {
+        *positions = nv; /* nothing merged: no vertex is compared */
         return GC_OK;
     }
     /* One buffer serves first as the position table, then as the grouped edges. */
@@ -534,5 +536,12 @@ gc_status gc_mesh_watertight(const gc_mesh *mesh, int *watertight, char *err)
         return GC_ERR_ARGUMENT;
     }
     *watertight = wt;
+    *positions = nv - merged;
     return GC_OK;
+}
+
+gc_status gc_mesh_watertight(const gc_mesh *mesh, int *watertight, char *err)
+{
+    int64_t positions;
+    return gc_mesh_topology(mesh, watertight, &positions, err);
 }

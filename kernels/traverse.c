@@ -32,7 +32,7 @@ typedef struct {
 } gc_mail;
 
 typedef struct {
-    uint32_t steps, tests, subgrids;
+    uint32_t steps, tests, subgrids, visits;
 } gc_counts;
 
 static void gc_mail_next_ray(gc_mail *m)
@@ -259,9 +259,9 @@ gc_status gc_intersect(const gc_grid *g, int64_t n, const double *origins, const
     return GC_OK;
 }
 
-gc_status gc_count(const gc_grid *g, int64_t n, const double *origins, const double *directions,
-                   double *t, int32_t *prim, uint32_t *steps, uint32_t *tests, uint32_t *subgrids,
-                   char *err)
+static gc_status count_rays(const gc_grid *g, int64_t n, const double *origins, const double *directions,
+                            double *t, int32_t *prim, uint32_t *steps, uint32_t *tests, uint32_t *subgrids,
+                            uint32_t *visits, char *err)
 {
     gc_status st = gc_check_rays(n, origins, directions, err);
     if (st != GC_OK) {
@@ -275,7 +275,7 @@ gc_status gc_count(const gc_grid *g, int64_t n, const double *origins, const dou
     gc_ray r;
     gc_hit h;
     for (int64_t k = 0; k < n; ++k) {
-        gc_counts cnt = {0, 0, 0};
+        gc_counts cnt = {0, 0, 0, 0};
         gc_ray_prepare(&r, origins + 3 * k, directions + 3 * k);
         if (g->intersector == GC_WATERTIGHT) {
             trace_counted_wt(g, &r, &h, mail, &cnt);
@@ -297,9 +297,25 @@ gc_status gc_count(const gc_grid *g, int64_t n, const double *origins, const dou
         if (subgrids) {
             subgrids[k] = cnt.subgrids;
         }
+        if (visits) {
+            visits[k] = cnt.visits;
+        }
     }
     free(m.stamp);
     return GC_OK;
+}
+
+gc_status gc_count(const gc_grid *g, int64_t n, const double *origins, const double *directions,
+                   double *t, int32_t *prim, uint32_t *steps, uint32_t *tests, uint32_t *subgrids,
+                   char *err)
+{
+    return count_rays(g, n, origins, directions, t, prim, steps, tests, subgrids, NULL, err);
+}
+
+gc_status gc_count_visits(const gc_grid *g, int64_t n, const double *origins, const double *directions,
+                          uint32_t *visits, char *err)
+{
+    return count_rays(g, n, origins, directions, NULL, NULL, NULL, NULL, NULL, visits, err);
 }
 
 static int64_t now_ns(void)

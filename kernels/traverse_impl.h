@@ -123,6 +123,9 @@ GC_TW_ATTR static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, con
             best_t = hit->t;
             best_prim = hit->prim;
         } else if (cell.count != 0) {
+#if GC_TW_COUNT
+            cnt->visits++;
+#endif
             /* best_prim holds the mesh's face index, read from the pack beside
              * the triangle's coordinates */
             if (mail) {

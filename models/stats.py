@@ -243,8 +243,19 @@ def is_watertight(vertices, faces) -> bool:
     Vertices at identical positions (bit-equal float64 coordinates) are merged
     first, so a mesh stored with split vertices (per-face normals/UVs) still counts.
     """
+    return mesh_topology(vertices, faces)[0]
+
+
+def mesh_topology(vertices, faces) -> tuple[bool, int]:
+    """(watertight, distinct vertex positions): :func:`is_watertight`, and the number of
+    distinct positions among all the vertices given (referenced or not)."""
     v, f = _check_mesh(vertices, faces)
     ids = _merge_positions(v)
+    return _edges_twice(ids, f), int(ids.max()) + 1
+
+
+def _edges_twice(ids, f) -> bool:
+    """Every edge of faces f, over merged vertex ids, shared by exactly two faces."""
     g = [ids[np.ascontiguousarray(f[:, j])] for j in range(3)]  # merged vertex ids per corner
     a = np.concatenate(g)
     b = np.concatenate([g[1], g[2], g[0]])
@@ -277,6 +288,8 @@ class SceneStats:
     n_degenerate : int, triangles with AR > 1/DEGENERATE_REL_AREA or zero size.
     watertight : bool, see :func:`is_watertight`.
     enclosed_volume : float, see :func:`enclosed_volume`; 0.0 unless watertight.
+    positions : int, distinct vertex positions (:func:`mesh_topology`), or 0 when not
+        computed; see :attr:`separate_fraction`.
     """
 
     n_triangles: int
@@ -299,6 +312,22 @@ class SceneStats:
     n_degenerate: int
     watertight: bool
     enclosed_volume: float
+    positions: int = 0
+
+    @property
+    def separate_fraction(self) -> float:
+        """How far the triangles are from sharing their corners, in [0, 1].
+
+        ``(P - N/2) / (5N/2)`` clipped, P distinct vertex positions: 0 for a closed
+        triangulated surface (about N/2 positions, each shared by six triangles), 1 for
+        triangles that share no corner (3N positions).  0 when P was not computed (a
+        connected surface is assumed).  The occupied-cell model (models/general.py)
+        uses it to decide how much of each triangle's cells its neighbours share.
+        """
+        n = float(self.n_triangles)
+        if self.positions <= 0 or n <= 0:
+            return 0.0
+        return min(1.0, max(0.0, (self.positions - 0.5 * n) / (2.5 * n)))
 
 
 def box_volume_surface(extent) -> tuple[float, float]:
@@ -354,8 +383,9 @@ def scene_stats(vertices, faces, *, topology=True) -> SceneStats:
     vertices : (V, 3) float64, scene units. Must be finite.
     faces : (F, 3) int64, F >= 1.
     topology : also decide watertightness (an edge sort, about half the time on big
-        meshes) and, when watertight, the enclosed volume.  False leaves
-        ``watertight=False`` and ``enclosed_volume=0.0`` (treated as an open mesh).
+        meshes), count distinct vertex positions and, when watertight, find the
+        enclosed volume.  False leaves ``watertight=False``, ``positions=0`` and
+        ``enclosed_volume=0.0`` (treated as an open, connected mesh).
 
     Returns
     -------
@@ -390,6 +420,7 @@ def scene_stats(vertices, faces, *, topology=True) -> SceneStats:
         if topology:  # 6 x signed volume, corners relative to the centre c: (p0-c).(u x w)
             vol6 += float(np.einsum("ij,ij->", p0 - centre[:, None], cross))
         n_good += int(np.count_nonzero(2.0 * area > DEGENERATE_REL_AREA * lsq))
+    watertight, positions = mesh_topology(v, f) if topology else (False, 0)
     stride = aspect_sample_stride(n)
     sample = [c[::stride] for c in corners] if stride > 1 else corners
     _, _, _, _, area, lsq, _ = _chunk_geometry(v3, sample, 0, sample[0].shape[0])
@@ -397,7 +428,7 @@ def scene_stats(vertices, faces, *, topology=True) -> SceneStats:
     return stats_from_sums(
         n_triangles=n, box_lo=box_lo, box_hi=box_hi, e1_axes=e1, e2_axes=e2, perimeters=per, pair_sums=pair,
         triple=triple, area=area_sum, vol6=vol6, n_good=n_good, aspect_sample=lsq[good] / (2.0 * area[good]),
-        watertight=is_watertight(v, f) if topology else False)
+        watertight=watertight, positions=positions)
 
 
 def aspect_sample_stride(n_triangles: int) -> int:
@@ -406,7 +437,7 @@ def aspect_sample_stride(n_triangles: int) -> int:
 
 
 def stats_from_sums(*, n_triangles, box_lo, box_hi, e1_axes, e2_axes, perimeters, pair_sums, triple, area, vol6,
-                    n_good, aspect_sample, watertight) -> SceneStats:
+                    n_good, aspect_sample, watertight, positions=0) -> SceneStats:
     """SceneStats from the sums of one pass over the triangles (see :func:`scene_stats`).
 
     ``box_lo``/``box_hi`` are the triangles' bounds (the grid box is derived here),
@@ -441,7 +472,8 @@ def stats_from_sums(*, n_triangles, box_lo, box_hi, e1_axes, e2_axes, perimeters
         perimeters=np.asarray(perimeters, dtype=np.float64), bbox_pair_sums=np.asarray(pair_sums, dtype=np.float64),
         bbox_triple_sum=float(triple), area=float(area), k=e2_total / volume ** (2.0 / 3.0),
         aspect_median=ar_med, aspect_p95=ar_p95, n_degenerate=int(n_triangles) - int(n_good),
-        watertight=bool(watertight), enclosed_volume=abs(float(vol6)) / 6.0 if watertight else 0.0)
+        watertight=bool(watertight), enclosed_volume=abs(float(vol6)) / 6.0 if watertight else 0.0,
+        positions=int(positions))
 
 
 def scene_class(stats: SceneStats) -> tuple[str, str]:

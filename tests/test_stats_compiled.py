@@ -10,7 +10,7 @@ import pytest
 from calibrate import Scene, _kernels
 from calibrate._grid import compiled_scene_stats
 from calibrate.scenes import builtin_names, load_builtin
-from models.stats import AR_SAMPLE_TRIANGLES, is_watertight, scene_stats
+from models.stats import AR_SAMPLE_TRIANGLES, is_watertight, mesh_topology, scene_stats
 
 # Sums over triangles are accumulated in another order (one pass in C, numpy's
 # chunked pairwise sums): they agree to rounding, not bit for bit.
@@ -139,6 +139,34 @@ def test_watertightness_matches_the_reference_on_seeded_variants(kind, i):
     if known is not None:
         assert want == known  # the reference itself recovers the constructed answer
     assert _kernels.mesh_watertight(np.ascontiguousarray(v), np.ascontiguousarray(f)) == want
+
+
+@pytest.mark.parametrize("kind", VARIANTS)
+@pytest.mark.parametrize("i", range(2))
+def test_distinct_positions_match_the_reference_on_seeded_variants(kind, i):
+    rng = np.random.default_rng(i)
+    v, f, _ = _variant(*_closed_mesh(i), kind, rng)
+    want = mesh_topology(v, f)
+    assert _kernels.mesh_topology(np.ascontiguousarray(v), np.ascontiguousarray(f)) == want
+    # the reference recovers a count made by hand: rows that differ in any bit (-0.0 is +0.0)
+    rows = {tuple(r) for r in (np.asarray(v, dtype=np.float64) + 0.0).tolist()}
+    assert want[1] == len(rows)
+
+
+def test_distinct_positions_of_split_and_separate_triangles():
+    mesh = load_builtin("sphere")  # closed: about half as many positions as faces
+    v, f = np.asarray(mesh[0], dtype=np.float64), np.asarray(mesh[1], dtype=np.int64)
+    split_v, split_f = v[f.reshape(-1)], np.arange(3 * len(f)).reshape(-1, 3)
+    closed = compiled_scene_stats(v, f)
+    split = compiled_scene_stats(split_v, split_f)
+    assert closed.positions == split.positions == len(np.unique(v, axis=0))
+    assert closed.separate_fraction == split.separate_fraction < 0.01
+    # the same triangles moved apart: no corner shared
+    moved = split_v + np.repeat(np.arange(len(f))[:, None] * 10.0, 3, axis=0)
+    apart = compiled_scene_stats(moved, split_f)
+    assert apart.positions == 3 * len(f) and apart.separate_fraction == 1.0
+    assert scene_stats(moved, split_f).positions == apart.positions
+    assert scene_stats(moved, split_f, topology=False).separate_fraction == 0.0  # not computed: connected
 
 
 @pytest.mark.parametrize("i", range(6))

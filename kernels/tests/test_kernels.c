@@ -680,6 +680,60 @@ static void test_unused_vertices(void)
     mesh_free(&m);
 }
 
+/* Occupied cells entered: two small triangles in cells 0 and 2 of a 4x1x1 grid
+ * over [0,4]x[0,1]x[0,1], each in the plane x = cell + 0.5 over y, z in [0.1, 0.3].
+ * A ray along x that misses them steps 4 cells and enters the 2 occupied ones; one
+ * that hits the first stops in cell 0, having entered 1.  The unit cube's 12
+ * triangles over 8 corners have 8 distinct positions, and so have its 36 corners
+ * given one by one. */
+static void test_visits_and_positions(void)
+{
+    const double v[6][3] = {{0.5, 0.1, 0.1}, {0.5, 0.3, 0.1}, {0.5, 0.1, 0.3},
+                            {2.5, 0.1, 0.1}, {2.5, 0.3, 0.1}, {2.5, 0.1, 0.3}};
+    const int64_t f[2][3] = {{0, 1, 2}, {3, 4, 5}};
+    gc_mesh mesh = {&v[0][0], 6, &f[0][0], 2};
+    gc_build_params p = gc_build_params_default();
+    p.has_box = 1;
+    p.box_lo[0] = p.box_lo[1] = p.box_lo[2] = 0.0;
+    p.box_hi[0] = 4.0, p.box_hi[1] = p.box_hi[2] = 1.0;
+    p.resolution[0] = 4, p.resolution[1] = p.resolution[2] = 1;
+    gc_grid *g = NULL;
+    char err[GC_ERROR_LEN] = "";
+    CHECK(gc_grid_build(&mesh, &p, &g, err) == GC_OK, "visits grid: %s", err);
+    if (!g) {
+        return;
+    }
+    const double o[2][3] = {{-1.0, 0.8, 0.8}, {-1.0, 0.15, 0.15}}, d[2][3] = {{1, 0, 0}, {1, 0, 0}};
+    uint32_t steps[2] = {0, 0}, visits[2] = {9, 9};
+    CHECK(gc_count(g, 2, &o[0][0], &d[0][0], NULL, NULL, steps, NULL, NULL, err) == GC_OK, "count: %s", err);
+    CHECK(gc_count_visits(g, 2, &o[0][0], &d[0][0], visits, err) == GC_OK, "count_visits: %s", err);
+    CHECK(steps[0] == 4 && visits[0] == 2, "a missing ray: %u steps and %u visits, want 4 and 2", steps[0],
+          visits[0]);
+    CHECK(steps[1] == 1 && visits[1] == 1, "a hitting ray: %u steps and %u visits, want 1 and 1", steps[1],
+          visits[1]);
+    gc_grid_free(g);
+
+    int wt = -1;
+    int64_t positions = -1;
+    gc_mesh cube = {&CUBE_V[0][0], 8, &CUBE_F[0][0], 12};
+    CHECK(gc_mesh_topology(&cube, &wt, &positions, err) == GC_OK && wt == 1 && positions == 8,
+          "cube: watertight %d with %lld positions, want 1 and 8", wt, (long long)positions);
+    double split_v[36][3];
+    int64_t split_f[12][3];
+    for (int t = 0; t < 12; ++t) {
+        for (int c = 0; c < 3; ++c) {
+            memcpy(split_v[3 * t + c], CUBE_V[CUBE_F[t][c]], sizeof split_v[0]);
+            split_f[t][c] = 3 * t + c;
+        }
+    }
+    gc_mesh split = {&split_v[0][0], 36, &split_f[0][0], 12};
+    CHECK(gc_mesh_topology(&split, &wt, &positions, err) == GC_OK && wt == 1 && positions == 8,
+          "split cube: watertight %d with %lld positions, want 1 and 8", wt, (long long)positions);
+    split_v[0][0] = 0.25; /* one corner moved: a ninth position, and a crack */
+    CHECK(gc_mesh_topology(&split, &wt, &positions, err) == GC_OK && wt == 0 && positions == 9,
+          "cracked cube: watertight %d with %lld positions, want 0 and 9", wt, (long long)positions);
+}
+
 int main(void)
 {
     test_prepared_overlap();
@@ -692,6 +746,7 @@ int main(void)
     test_axis_parallel_and_cell_faces();
     test_watertight();
     test_scaled_scenes();
+    test_visits_and_positions();
     printf("%d passed, %d failed\n", checks - failures, failures);
     return failures ? 1 : 0;
 }
