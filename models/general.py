@@ -70,6 +70,11 @@ from .stats import SceneStats
 CUBIC_NEWTON_ITERATIONS = 40
 
 OVERLAP_MODES = ("exact", "bbox")
+#: Occupied cells a ray enters on a connected surface when rays stop at their first hit
+#: (:func:`visits_per_ray`): measured 0.9 to 2.0 per ray on the built-in surfaces and the
+#: meshes of ../shared/meshes at 1/8 to 8 cells per triangle, nearly the same at every
+#: resolution (docs/calibration.md, "Occupied cells").
+VISITS_SURFACE = 1.5
 
 
 @dataclass(frozen=True)
@@ -134,6 +139,75 @@ def expected_refs(stats: SceneStats, resolution, *, overlap="exact", edge=True, 
         else:
             r += float(np.sum(stats.bbox_pair_sums / cc)) + stats.bbox_triple_sum / float(np.prod(c))
     return r
+
+
+def occupied_cells(stats: SceneStats, resolution) -> float:
+    """Expected cells holding at least one triangle (exact overlap), the *occupied* cells.
+
+    A cell is occupied when the union U of the triangles meets it, so (the argument of
+    :func:`expected_refs`, for U instead of one triangle) the offset-averaged count is
+    ``vol(U (+) C) / vol(C)``.  For a connected surface the union's first-order term is
+    its projected area, ``sum_i E2_i / (c_j c_k)``: the ``N`` and ``E1`` terms of R count
+    cells that neighbouring triangles share.  For separate triangles nothing is shared
+    and every term of R counts.  The model takes
+
+        ``R_occ = sum_i E2_i / (c_j c_k) + f_sep (N + sum_i E1_i / c_i)``
+
+    (``f_sep`` = :attr:`models.stats.SceneStats.separate_fraction`), and spreads R_occ
+    over the ``n`` cells at random (Poisson): ``occupied = n (1 - exp(-R_occ / n))``,
+    which saturates at n for coarse grids.  APPROXIMATE: measured against the kernel's
+    grids within about 15% on closed and open surfaces and on separate triangles
+    (docs/calibration.md, "Occupied cells").
+    """
+    c = cell_sizes(stats.extent, resolution)
+    cc = np.array([c[1] * c[2], c[2] * c[0], c[0] * c[1]])
+    r_occ = float(np.sum(stats.e2_axes / cc))
+    r_occ += stats.separate_fraction * (float(stats.n_triangles) + float(np.sum(stats.e1_axes / c)))
+    n = float(np.prod(_resolution(resolution)))
+    return float(-n * np.expm1(-r_occ / n))
+
+
+def terminated_visits(visits, separate_fraction, traversed_fraction):
+    """Occupied cells a ray enters when rays stop at their first hit, from the count without
+    termination ``visits`` (broadcasts over arrays).
+
+    Two kinds of scene, mixed by ``separate_fraction`` (:attr:`models.stats.SceneStats.separate_fraction`):
+
+    - separate triangles: a ray's work is in proportion to the distance it covers,
+      so ``traversed_fraction * visits`` (as for steps and tests);
+    - a connected surface: a ray that meets it stops within the first occupied cells
+      it enters, about VISITS_SURFACE of them whatever the resolution; no more rays
+      meet them than the count without termination allows, so
+      ``VISITS_SURFACE * min(visits, 1)``.  (Constant over resolution on purpose: on a
+      thin slab one cell thick the count without termination grows with the cells
+      across it, but the kernel's rays stop in the first one, 0.9 per ray at every
+      resolution on the CAD tray.)
+
+    ``traversed_fraction >= 1`` (rays never stop) returns ``visits`` unchanged.
+    """
+    v = np.asarray(visits, dtype=np.float64)
+    if traversed_fraction >= 1.0:
+        return v if v.ndim else float(v)
+    f = float(separate_fraction)
+    out = f * traversed_fraction * v + (1.0 - f) * VISITS_SURFACE * np.minimum(v, 1.0)
+    return out if out.ndim else float(out)
+
+
+def visits_per_ray(stats: SceneStats, resolution, *, terms: Terms | None = None) -> float:
+    """Expected occupied cells a ray enters, with termination as ``terms`` says.
+
+    Without termination, Crofton as in :func:`steps_per_ray`, for the occupied cells
+    only: ``occupied_cells * S_c / S``; with it, :func:`terminated_visits`.
+
+    APPROXIMATE (docs/calibration.md, "Occupied cells"): on separate triangles within
+    about 5% of the kernel's counts at coarse grids and 40% at fine ones; on surfaces
+    the kernel enters 0.9 to 2 occupied cells per ray, against the model's 1.5.
+    """
+    terms = terms or Terms()
+    c = cell_sizes(stats.extent, resolution)
+    s_c = 2.0 * (c[0] * c[1] + c[1] * c[2] + c[2] * c[0])
+    v = occupied_cells(stats, resolution) * s_c / stats.surface
+    return terminated_visits(v, stats.separate_fraction, terms.traversed_fraction)
 
 
 def triangle_tests_per_ray(stats: SceneStats, resolution, *, mailbox=False, overlap="exact",

@@ -137,6 +137,7 @@ class NestedCounts:
     cells: int
     refs: int
     per_level: list = field(default_factory=list)
+    visits: float = 0.0  # occupied leaf cells entered (models.general.occupied_cells at analytic leaves)
 
     def ns_per_ray(self, t_setup, t_step, t_int, t_sub):
         """``T_setup + T_step steps + T_int tests + T_sub subgrids`` (ns); broadcasts over arrays."""
@@ -168,7 +169,8 @@ def _vector_resolution(total_cells, extent, max_axis):
 
 
 def nested_counts(geom: TriangleGeometry, box_lo, box_hi, top_resolution, levels, r, *,
-                  overlap="bbox", corners=None, leaves="enumerate", overlap_test=None) -> NestedCounts:
+                  overlap="bbox", corners=None, leaves="enumerate", overlap_test=None,
+                  separate_fraction=0.0) -> NestedCounts:
     """Build an L-level grid structure from the triangles and return its expected counts.
 
     Parameters
@@ -185,6 +187,12 @@ def nested_counts(geom: TriangleGeometry, box_lo, box_hi, top_resolution, levels
         searching; ``refs`` is then the expected count.
     overlap_test : optional drop-in for :func:`triangle_box_overlap` (same arguments and
         result), e.g. a compiled one; this module stays free of any kernel.
+    separate_fraction : :attr:`models.stats.SceneStats.separate_fraction`, for the occupied
+        cells of analytic leaves (:func:`models.general.occupied_cells`, per subgrid).
+
+    ``visits`` counts the occupied leaf cells a line enters (no termination): exactly the
+    non-empty leaf cells' ``S_cell / S`` when the leaves are enumerated, the occupied-cell
+    model per subgrid when they are analytic.
     """
     if leaves not in ("enumerate", "analytic"):
         raise ValueError(f"leaves must be 'enumerate' or 'analytic', got {leaves!r}")
@@ -207,7 +215,7 @@ def nested_counts(geom: TriangleGeometry, box_lo, box_hi, top_resolution, levels
     pair_tri = np.arange(geom.area.shape[0])
     pair_node = np.zeros_like(pair_tri)
     sub = None
-    steps = subgrids = tests = 0.0
+    steps = subgrids = tests = visits = 0.0
     cells_total = refs_total = 0
     per_level = []
     dominant = np.argmax(geom.proj_area, axis=1)
@@ -237,6 +245,11 @@ def nested_counts(geom: TriangleGeometry, box_lo, box_hi, top_resolution, levels
             cc = np.stack([cell[:, 1] * cell[:, 2], cell[:, 2] * cell[:, 0], cell[:, 0] * cell[:, 1]], axis=1)
             s_cell = 2.0 * cc.sum(axis=1)
             tests += float(np.sum(refs * s_cell)) / s_root
+            # occupied cells of each leaf grid: its sub-scene's projected area, plus the
+            # linear terms as far as its triangles are separate (models.general.occupied_cells)
+            r_occ = np.sum(e2_s / cc, axis=1) + float(separate_fraction) * (s0 + np.sum(s1 * inv, axis=1))
+            n_cells = ncell.astype(np.float64)
+            visits += float(np.sum(-n_cells * np.expm1(-r_occ / n_cells) * s_cell)) / s_root
             refs_total = int(round(float(refs.sum())))
             cells_total += int(ncell.sum())
             per_level.append(LevelInfo(grids=int(node_res.shape[0]), cells=int(ncell.sum()), nonempty=-1,
@@ -268,6 +281,10 @@ def nested_counts(geom: TriangleGeometry, box_lo, box_hi, top_resolution, levels
                                     + cell[node, 2] * cell[node, 0])
             tests += float(np.sum(s_cell_of_pair)) / s_root
             refs_total = int(tri.size)
+            occ_cell = np.searchsorted(offset, nonempty_ids, side="right") - 1  # the grid of each occupied cell
+            c_occ = cell[occ_cell]
+            visits += float(np.sum(2.0 * (c_occ[:, 0] * c_occ[:, 1] + c_occ[:, 1] * c_occ[:, 2]
+                                          + c_occ[:, 2] * c_occ[:, 0]))) / s_root
             break
         # Sub-scenes of the non-empty cells (bounding-box clip, see module docstring).
         clip = np.maximum(np.minimum(geom.hi[tri], c_hi) - np.maximum(geom.lo[tri], c_lo), 0.0)
@@ -324,7 +341,7 @@ def nested_counts(geom: TriangleGeometry, box_lo, box_hi, top_resolution, levels
         pair_tri, pair_node = tri, child
     return NestedCounts(levels=int(levels), top_resolution=tuple(int(x) for x in np.asarray(top_resolution)),
                         steps=steps, tests=tests, subgrids=subgrids, cells=cells_total, refs=refs_total,
-                        per_level=per_level)
+                        per_level=per_level, visits=visits)
 
 
 @dataclass(frozen=True)
