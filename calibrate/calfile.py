@@ -12,6 +12,8 @@ Schema (version :data:`SCHEMA_VERSION`), one JSON object::
         "t_sub_ns":   {...} or null,    # null when no measurement entered a subgrid
         "t_mem_ns":   {...} or null,    # the memory effect (models/memory.py); null or absent
                                         #   when not fitted (diagnostics.t_mem_skipped says why)
+        "t_visit_ns": {...} or null,    # per occupied cell entered; null or absent when not
+                                        #   fitted (diagnostics.t_visit_skipped says why)
         "ratio":      {...}             # r = T_int / T_step, dimensionless
       },
       "isolated": {"t_step_ns": {"median": m, "ci95": [lo, hi]}, ...},
@@ -24,7 +26,9 @@ Schema (version :data:`SCHEMA_VERSION`), one JSON object::
          "intersector": str | null, "rays": int, "steps": int, "tests": int,
          "subgrids": int, "values_ns": [ns per batch, ...],
          "memory_bytes": int, "misses": float,   # optional: the grid's bytes, and the cache
-         ...extra keys kept}                     #   lines its batch fetched from beyond the cache
+                                                 #   lines its batch fetched from beyond the cache
+         "visits": int,                          # optional: occupied cells entered (<= steps)
+         ...extra keys kept}
       ],
       "meta": {...},                    # free-form (tool version, budget, wall time, ...);
                                         #   cache_bytes: the cache T_mem was measured against
@@ -86,6 +90,14 @@ BY_RAYS_KEYS = ("constants", "samples", "diagnostics")
 MAX_STORED_SAMPLES = 2000
 # Count fields of a measurement (batch totals); subgrids may be omitted (= 0).
 COUNT_FIELDS = ("rays", "steps", "tests", "subgrids")
+#: Counts a measurement may carry, each fitted (with its constant) when the timings call for it.
+OPTIONAL_COUNT_FIELDS = ("misses", "visits")
+#: The optional counts a calibration's fit takes by default.  ``calibrate run`` records every
+#: configuration's occupied cells entered (``visits``) but does not fit T_visit yet: with it
+#: the in-context fit cross-validates better (4.1% against 5.3% on isotropic rays), but
+#: ``compare``'s penalties came out worse in two runs of two (docs/calibration.md,
+#: "Occupied cells"); pass ``optional=OPTIONAL_COUNT_FIELDS`` to fit it.
+DEFAULT_OPTIONAL_COUNTS = ("misses",)
 
 
 # ---------------------------------------------------------------------------
@@ -197,7 +209,7 @@ def _validate_samples(x, where: str, constants: Mapping) -> None:
     for key in ("t_setup_ns", "t_step_ns", "t_int_ns"):
         if key not in cols:
             _fail(f"{where}.columns", f"missing column {key!r}")
-    for key in ("t_sub_ns", "t_mem_ns"):
+    for key in ("t_sub_ns", "t_mem_ns", "t_visit_ns"):
         if constants.get(key) is not None and key not in cols:
             _fail(f"{where}.columns", f"missing column {key!r} although constants.{key} is set")
     values = obj["values"]
@@ -262,6 +274,13 @@ def _validate_measurement(m, where: str) -> None:
             _fail(f"{where}.memory_bytes", f"must be a whole number of bytes >= 0, got {v:g}")
     if "misses" in obj and _finite(obj["misses"], f"{where}.misses") < 0:
         _fail(f"{where}.misses", f"negative count {obj['misses']:g}")
+    if "visits" in obj:
+        v = _finite(obj["visits"], f"{where}.visits")
+        if v < 0 or not v.is_integer():
+            _fail(f"{where}.visits", f"must be a whole number of cells >= 0, got {v:g}")
+        if _is_number(obj["steps"]) and v > obj["steps"]:
+            _fail(f"{where}.visits", f"{v:g} occupied cells entered but only {obj['steps']:g} cells stepped: "
+                                     "visits are part of the steps")
     if obj["rays"] < 1:
         _fail(f"{where}.rays", "a batch must trace at least one ray")
     vals = obj["values_ns"]
@@ -531,6 +550,7 @@ def design_from_measurements(
     kind: str = "in_context",
     intersector: str | None = None,
     include_held_back: bool = False,
+    optional: tuple = DEFAULT_OPTIONAL_COUNTS,
 ) -> dict:
     """Gather measurements of one kind into a design for :func:`calibrate.fit.fit`.
 
@@ -541,8 +561,11 @@ def design_from_measurements(
     Records without values (an interrupted series) are skipped, and so are
     records marked ``held_back`` (kept out of the fit to test its predictions)
     unless ``include_held_back``.
+    optional : the optional counts (of OPTIONAL_COUNT_FIELDS) to take, each when every
+        chosen record has it; by default ``misses`` alone (DEFAULT_OPTIONAL_COUNTS).
     Returns {rays, steps, tests, subgrids: (J,) float arrays, times_ns: J lists}, and
-    ``misses`` (the memory effect's count) when every chosen record has it.
+    ``misses`` (the memory effect's count) and ``visits`` (occupied cells entered) as
+    ``optional`` says.
     """
     if kind not in MEASUREMENT_KINDS:
         raise UserError(f"kind must be one of {', '.join(MEASUREMENT_KINDS)}, got {kind!r}")
@@ -560,48 +583,71 @@ def design_from_measurements(
         which = f" for intersector {intersector!r}" if intersector else ""
         raise UserError(f"no {kind} measurements with values{which}: nothing to fit")
     design = {k: np.array([float(m.get(k, 0)) for m in chosen]) for k in COUNT_FIELDS}
-    if all("misses" in m for m in chosen):
-        design["misses"] = np.array([float(m["misses"]) for m in chosen])
+    for key in optional:
+        if key not in OPTIONAL_COUNT_FIELDS:
+            raise UserError(f"unknown optional count {key!r} (known: {', '.join(OPTIONAL_COUNT_FIELDS)})")
+        if all(key in m for m in chosen):
+            design[key] = np.array([float(m[key]) for m in chosen])
     design["times_ns"] = [list(map(float, m["values_ns"])) for m in chosen]
     return design
 
 
-#: Least rise of the maximum log posterior for which the memory term is fitted: half the
-#: 5% point of chi-square with one degree of freedom (3.84 / 2), a likelihood-ratio test.
+#: Least rise of the maximum log posterior for which an optional term (T_visit, T_mem) is
+#: fitted: half the 5% point of chi-square with one degree of freedom (3.84 / 2), a
+#: likelihood-ratio test.
 MEMORY_MIN_GAIN = 1.92
+#: The optional terms, in the order they are tested: (count column, constant, what it is).
+OPTIONAL_TERMS = (("visits", "t_visit_ns", "T_visit not fitted, occupied cells are priced as any cell step"),
+                  ("misses", "t_mem_ns", "T_mem not fitted, the memory effect is left out"))
 
 
 def fit_in_context(design: Mapping, **fit_kwargs) -> _fit.FitResult:
-    """:func:`calibrate.fit.fit` with the memory term when the design carries ``misses``.
+    """:func:`calibrate.fit.fit` with the optional terms the timings call for.
 
-    The term is fitted when the timings call for it: when adding T_mem raises the maximum
-    log posterior by at least MEMORY_MIN_GAIN (the timings reject T_mem = 0 at the 5%
-    level).  Otherwise, or when the fit with it fails (e.g. its interval reaches towards
-    0), the design is fitted without it, and ``diagnostics.t_mem_skipped`` says why.  An
-    error of the fit without it is raised as is.
+    An optional term (T_visit when the design carries ``visits``, then T_mem when it
+    carries ``misses``) is fitted when adding it raises the maximum log posterior by at
+    least MEMORY_MIN_GAIN (the timings reject T = 0 at the 5% level), given the terms
+    already kept.  Otherwise, or when the fit with it fails (e.g. its interval reaches
+    towards 0), the design is fitted without it, and ``diagnostics.t_visit_skipped`` /
+    ``diagnostics.t_mem_skipped`` say why.  An error of the fit without them is raised as is.
     """
-    misses = design.get("misses")
-    if misses is None or not np.any(np.asarray(misses) > 0):
-        return _fit.fit({k: v for k, v in design.items() if k != "misses"}, **fit_kwargs)
+    design = {k: v for k, v in design.items()
+              if k not in OPTIONAL_COUNT_FIELDS or (v is not None and np.any(np.asarray(v) > 0))}
     short = {k: v for k, v in fit_kwargs.items() if k in ("seed", "required", "priors")}
-    try:
-        gain = _fit.log_posterior_gain(design, "misses", **short)
-    except ValueError as exc:
-        gain, why = -math.inf, str(exc)
-    else:
-        why = (f"adding it raises the maximum log posterior by {gain:.3g}, below {MEMORY_MIN_GAIN:g} "
-               "(the timings do not reject T_mem = 0 at the 5% level)")
-    if gain >= MEMORY_MIN_GAIN:
+    skipped = {}
+    for col, name, label in OPTIONAL_TERMS:
+        if col not in design:
+            continue
         try:
-            return _fit.fit(design, fail_fast=("t_mem_ns",), **fit_kwargs)
+            gain = _fit.log_posterior_gain(design, col, **short)
+        except ValueError as exc:
+            gain, why = -math.inf, str(exc)
+        else:
+            why = (f"adding it raises the maximum log posterior by {gain:.3g}, below {MEMORY_MIN_GAIN:g} "
+                   f"(the timings do not reject {_fit.CONSTANT_LABELS[name]} = 0 at the 5% level)")
+        if gain < MEMORY_MIN_GAIN:
+            design = {k: v for k, v in design.items() if k != col}
+            skipped[name] = f"{label}: {why}"
+    while True:
+        kept = tuple(name for col, name, _ in OPTIONAL_TERMS if col in design)
+        try:
+            result = _fit.fit(design, fail_fast=kept, **fit_kwargs) if kept else _fit.fit(design, **fit_kwargs)
+            break
         except (ValueError, _fit.ConvergenceError) as exc:
-            why = str(exc)
-    result = _fit.fit({k: v for k, v in design.items() if k != "misses"}, **fit_kwargs)
-    result.diagnostics["t_mem_skipped"] = f"T_mem not fitted, the memory effect is left out: {why}"
+            if not kept:
+                raise
+            # the term the error names goes; when it names none, the last one tested
+            named = [n for n in kept if _fit.CONSTANT_LABELS[n] in str(exc)]
+            col, name, label = [t for t in OPTIONAL_TERMS if t[1] == (named or kept)[-1]][0]
+            design = {k: v for k, v in design.items() if k != col}
+            skipped[name] = f"{label}: {exc}"
+    for name, why in skipped.items():
+        result.diagnostics[f"{name[:-3]}_skipped"] = why
     return result
 
 
-def refit(cal: Mapping, *, seed: int = 0, intersector: str | None = None, **fit_kwargs) -> dict:
+def refit(cal: Mapping, *, seed: int = 0, intersector: str | None = None,
+          optional: tuple = DEFAULT_OPTIONAL_COUNTS, **fit_kwargs) -> dict:
     """Re-fit the constants from a calibration's stored in-context measurements.
 
     Returns a new validated calibration: ``constants``, ``samples`` and
@@ -611,7 +657,7 @@ def refit(cal: Mapping, *, seed: int = 0, intersector: str | None = None, **fit_
     measurements cannot be fitted (see fit.fit).
     """
     cal = validate(_plain(cal))
-    design = design_from_measurements(cal["measurements"], "in_context", intersector)
+    design = design_from_measurements(cal["measurements"], "in_context", intersector, optional=optional)
     if "priors" not in fit_kwargs:  # the priors the original fit took from the isolating suites
         stored = cal["diagnostics"].get("priors") or {}
         try:
@@ -619,7 +665,8 @@ def refit(cal: Mapping, *, seed: int = 0, intersector: str | None = None, **fit_
         except (TypeError, ValueError, IndexError):
             raise UserError("diagnostics.priors: must map constant names to [median_ns, sigma_log]") from None
     result = fit_in_context(design, seed=seed, **fit_kwargs)
-    by_rays, skipped = fit_by_rays(cal["measurements"], seed=seed, intersector=intersector, **fit_kwargs)
+    by_rays, skipped = fit_by_rays(cal["measurements"], seed=seed, intersector=intersector, optional=optional,
+                                   **fit_kwargs)
     meta = {k: v for k, v in cal.get("meta", {}).items() if k != "by_rays_skipped"}
     if skipped:
         meta["by_rays_skipped"] = skipped
@@ -640,7 +687,7 @@ def ray_sets(measurements: list) -> list[str]:
 
 
 def fit_by_rays(measurements: list, *, seed: int = 0, intersector: str | None = None,
-                **fit_kwargs) -> tuple[dict, dict]:
+                optional: tuple = DEFAULT_OPTIONAL_COUNTS, **fit_kwargs) -> tuple[dict, dict]:
     """Fit each ray set's in-context measurements alone (when there are two or more sets).
 
     Rays of one set share a coherence: camera rays step in lockstep through
@@ -656,7 +703,7 @@ def fit_by_rays(measurements: list, *, seed: int = 0, intersector: str | None = 
     for name in names:
         chosen = [m for m in measurements if m["kind"] == "in_context" and m.get("ray_set") == name]
         try:
-            design = design_from_measurements(chosen, "in_context", intersector)
+            design = design_from_measurements(chosen, "in_context", intersector, optional=optional)
             fits[name] = fit_in_context(design, seed=seed, **fit_kwargs)
         except (ValueError, _fit.ConvergenceError) as exc:
             skipped[name] = str(exc)

@@ -92,14 +92,14 @@ def _baseline_specs(pred: dict) -> dict:
     return out
 
 
-def _model_counts(stats, terms, spec: GridSpec, point: dict) -> tuple[float, float, float, str]:
-    """(steps, tests, subgrids, source) of the predicted curve at one sweep point."""
-    from models.general import predict_uniform
+def _model_counts(stats, terms, spec: GridSpec, point: dict) -> tuple[float, float, float, float, str]:
+    """(steps, tests, subgrids, occupied cells entered, source) of the predicted curve at one sweep point."""
+    from models.general import predict_uniform, visits_per_ray
 
     if spec.kind == "uniform":
         _, steps, tests = predict_uniform(stats, spec.top, 0.0, 1.0, 1.0, overlap="exact", terms=terms)
-        return steps, tests, 0.0, "model"
-    return point["steps"], point["tests"], point["subgrids"], "kernel"
+        return steps, tests, 0.0, visits_per_ray(stats, spec.top, terms=terms), "model"
+    return point["steps"], point["tests"], point["subgrids"], point.get("visits", 0.0), "kernel"
 
 
 def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: str = "auto",
@@ -180,11 +180,12 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
             m = measured[index[spec]]
             p = dict(levels=L, factor=float(f), resolution=list(spec.top), sub_scale=spec.sub_scale
                      if spec.kind == "nested" else None, **{key: m.get(key) for key in (
-                         "median_ns", "mad_ns", "steps", "tests", "subgrids", "cells", "memory_bytes", "skipped")},
+                         "median_ns", "mad_ns", "steps", "tests", "subgrids", "visits", "cells", "memory_bytes",
+                         "skipped")},
                      values=len(m.get("values_ns") or []))
             if "median_ns" in m:
-                steps, tests, subs, source = _model_counts(stats, terms, spec, m)
-                band = k.cost_samples(steps, tests, subs, float(m.get("memory_bytes") or 0.0))
+                steps, tests, subs, visits, source = _model_counts(stats, terms, spec, m)
+                band = k.cost_samples(steps, tests, subs, float(m.get("memory_bytes") or 0.0), visits)
                 p["predicted"] = dict(median=float(np.median(band)), ci95=[float(np.percentile(band, 2.5)),
                                                                          float(np.percentile(band, 97.5))],
                                       counts=source)

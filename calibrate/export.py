@@ -42,6 +42,9 @@ CONSTANTS = (("t_setup_ns", "GRIDCAL_T_SETUP_NS", "T_setup, cost of one ray's se
              ("t_mem_ns", "GRIDCAL_T_MEM_NS", "T_mem, cost of one cache line fetched from beyond the cache "
               "(the memory effect, GRIDCAL_CACHE_BYTES below; `calibrate predict` adds it, the resolution "
               "functions of this header do not)", "ns per cache line"),
+             ("t_visit_ns", "GRIDCAL_T_VISIT_NS", "T_visit, cost of entering one cell that holds triangles, beyond "
+              "its step (`calibrate predict` adds it, the resolution functions of this header do not)",
+              "ns per occupied cell entered"),
              ("ratio", "GRIDCAL_RATIO", "r = T_int / T_step, the ratio every resolution below uses",
               "dimensionless"))
 #: The public functions of the header (``--json`` lists them).

@@ -9,7 +9,8 @@ batch totals. Its median batch time is
 
     mu_j = rays_j*T_setup + steps_j*T_step + tests_j*T_int + subgrids_j*T_sub   (ns)
 
-and repeat k is ``y_jk = mu_j * exp(u_j + e_jk)``: multiplicative noise, so
+(plus ``misses_j*T_mem`` and ``visits_j*T_visit`` when the design carries those
+counts: cache lines fetched from beyond the cache, occupied cells entered), and repeat k is ``y_jk = mu_j * exp(u_j + e_jk)``: multiplicative noise, so
 every constant is fitted as its logarithm (positive by construction) and
 residuals are relative. Two noise terms:
 
@@ -30,8 +31,9 @@ residuals are relative. Two noise terms:
 
 Priors: each ``log T`` uniform on a box set by the data (no term may exceed
 ``PRIOR_UPPER_FACTOR`` times the fastest batch it appears in, and the box spans
-``PRIOR_RANGE_DECADES`` decades below that); ``tau`` half-normal with scale
-``TAU_PRIOR_SCALE``. ``mu_j`` is the *median* batch time (``exp`` of the mean
+``PRIOR_RANGE_DECADES`` decades below that), except the optional term T_visit, flat
+in ``T`` on the same box (``FLAT_PRIOR_NAMES``); ``tau`` half-normal
+with scale ``TAU_PRIOR_SCALE``. ``mu_j`` is the *median* batch time (``exp`` of the mean
 log time), which is what the protocol reports.
 
 Procedure
@@ -86,9 +88,11 @@ __all__ = [
 
 # Count column in a design -> the constant (ns per unit) it multiplies.
 # ``misses`` is the memory effect's count (models/memory.py): cache lines fetched from
-# beyond the cache, fitted only when a design carries it.
-COUNT_KEYS = ("rays", "steps", "tests", "subgrids", "misses")
-CONSTANT_NAMES = ("t_setup_ns", "t_step_ns", "t_int_ns", "t_sub_ns", "t_mem_ns")
+# beyond the cache; ``visits`` the occupied cells entered (cells holding triangles, part
+# of ``steps``), whose tests start a new run of packs.  Each is fitted only when a design
+# carries it.
+COUNT_KEYS = ("rays", "steps", "tests", "subgrids", "misses", "visits")
+CONSTANT_NAMES = ("t_setup_ns", "t_step_ns", "t_int_ns", "t_sub_ns", "t_mem_ns", "t_visit_ns")
 RATIO_NAME = "ratio"
 CONSTANT_LABELS = {
     "t_setup_ns": "T_setup",
@@ -96,6 +100,7 @@ CONSTANT_LABELS = {
     "t_int_ns": "T_int",
     "t_sub_ns": "T_sub",
     "t_mem_ns": "T_mem",
+    "t_visit_ns": "T_visit",
 }
 # Columns that must be present; subgrids is optional (uniform grids only).
 REQUIRED_COUNT_KEYS = ("rays", "steps", "tests")
@@ -119,6 +124,12 @@ TAU_MAX = 1.0
 PRIOR_UPPER_FACTOR = 10.0
 # The log-uniform prior spans this many decades below the upper bound.
 PRIOR_RANGE_DECADES = 8.0
+# Terms whose cost may be 0 with a prior flat in T itself (on the same box), not in log T.
+# A log-uniform prior gives every decade below the data's reach the same mass, so a term
+# the data put at a few ns but cannot tell from 0 at the 5% level gets most of its
+# posterior at 1e-5 ns; flat in T, it keeps the data's shape.  (T_mem keeps the
+# log-uniform prior it was validated with.)
+FLAT_PRIOR_NAMES = ("t_visit_ns",)
 
 # --- ill-posed designs -------------------------------------------------------
 # Condition number of the column-normalised relative design matrix above
@@ -200,10 +211,12 @@ class FitResult:
     """Posterior summary of a fit.
 
     constants : dict name -> {"median": float, "ci68": (lo, hi), "ci95": (lo, hi)},
-        names ``t_setup_ns``, ``t_step_ns``, ``t_int_ns``, ``t_sub_ns``, ``t_mem_ns``
-        (ns per ray, step, test, subgrid entry, cache line beyond the cache) and
+        names ``t_setup_ns``, ``t_step_ns``, ``t_int_ns``, ``t_sub_ns``, ``t_mem_ns``,
+        ``t_visit_ns`` (ns per ray, step, test, subgrid entry, cache line beyond the
+        cache, occupied cell entered) and
         ``ratio`` (T_int / T_step, dimensionless). ``t_sub_ns`` is None when the
-        design has no subgrids, ``t_mem_ns`` when it has no ``misses``
+        design has no subgrids, ``t_mem_ns`` when it has no ``misses``, ``t_visit_ns``
+        when it has no ``visits``
         (and any constant not fitted, see ``fit(required=...)``, is None).
     names : tuple of str, the fitted constants, columns of ``samples``.
     samples : (S, P) float, thinned posterior samples of the fitted constants, ns.
@@ -301,7 +314,7 @@ def prepare_design(design: Mapping, required: Sequence[str] = REQUIRED_COUNT_KEY
     """Validate a design and reduce it to per-configuration statistics.
 
     design : mapping with ``rays``, ``steps``, ``tests`` (J,) batch totals,
-        optional ``subgrids`` and ``misses`` (J,), and ``times_ns``: a (J, K) array or J
+        optional ``subgrids``, ``misses`` and ``visits`` (J,), and ``times_ns``: a (J, K) array or J
         sequences of repeat values (ns per batch, > 0).
 
     required : count columns that must be present and non-zero somewhere
@@ -459,6 +472,9 @@ class _LogPosterior:
             self.prior_mu[p] = math.log(median_ns)
             self.prior_prec[p] = 1.0 / sigma_log**2
         self.has_priors = bool(self.prior_prec.any())
+        # Optional terms: prior flat in T itself, i.e. + log T in log-parameters.
+        self.flat = np.array([1.0 if name in FLAT_PRIOR_NAMES else 0.0 for name in prep.names])
+        self.has_flat = bool(self.flat.any())
 
     def __call__(self, theta: np.ndarray) -> np.ndarray:
         theta = np.atleast_2d(theta)
@@ -478,6 +494,8 @@ class _LogPosterior:
         if self.has_priors:
             dev = theta[:, :-1] - self.prior_mu
             val = val - 0.5 * (dev * dev * self.prior_prec).sum(axis=1)
+        if self.has_flat:
+            val = val + theta[:, :-1] @ self.flat
         if all_ok:
             out = val
         else:
@@ -510,6 +528,9 @@ class _LogPosterior:
             dev = log_t - self.prior_mu
             val -= 0.5 * float((dev * dev * self.prior_prec).sum())
             g_t = g_t - dev * self.prior_prec
+        if self.has_flat:
+            val += float(log_t @ self.flat)
+            g_t = g_t + self.flat
         return float(val), np.append(g_t, g_tau)
 
 
@@ -846,17 +867,20 @@ def log_posterior_gain(design: Mapping, column: str, seed: int = 0, *,
     """How much a count column's term raises the maximum of the log posterior.
 
     The maximum with ``column`` in the design minus the maximum without it
-    (:func:`maximum_a_posteriori`).  Twice the gain is the likelihood-ratio statistic
-    of the term (its prior adds nothing: log-uniform over a box), so a gain below 1.92
+    (:func:`maximum_a_posteriori`), each without the ``log T`` of the flat priors
+    (``FLAT_PRIOR_NAMES``; a log-uniform prior adds nothing over its box).  Twice the
+    gain is then the likelihood-ratio statistic of the term, so a gain below 1.92
     means the timings do not reject the term's absence at the 5% level (chi-square
     with one degree of freedom).
     """
     if column not in design:
         raise ValueError(f"design has no column {column!r}")
-    with_it = maximum_a_posteriori(design, seed, required=required, priors=priors)[1]
-    without = maximum_a_posteriori({k: v for k, v in design.items() if k != column}, seed, required=required,
-                                   priors=priors)[1]
-    return with_it - without
+
+    def best(d):
+        consts, value = maximum_a_posteriori(d, seed, required=required, priors=priors)
+        return value - sum(math.log(v) for name, v in consts.items() if name in FLAT_PRIOR_NAMES)
+
+    return best(design) - best({k: v for k, v in design.items() if k != column})
 
 
 def predict_batch_times(samples: np.ndarray, names: Sequence[str], design: Mapping) -> np.ndarray:

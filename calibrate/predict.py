@@ -44,7 +44,7 @@ import numpy as np
 from models import baselines as _baselines
 from models.closed_forms import MAX_CELLS_PER_AXIS, MAX_TOTAL_CELLS, cells_to_resolution, l_level_cells
 from models.effects import EFFECT_TOLERANCE, select_effects, termination_fraction
-from models.general import Terms, expected_refs, predict_uniform, steps_per_ray
+from models.general import Terms, expected_refs, predict_uniform, steps_per_ray, terminated_visits, visits_per_ray
 from models.memory import lines_beyond_cache
 from models.nested import MAX_LEVELS, TooManyPairs, clustering_change, nested_counts
 from models.portable import paper_k, paper_level_cells
@@ -129,9 +129,10 @@ SIM_SEED = 0
 SIM_MAX_CELLS = 2 ** 24
 
 # --- the memory effect (models/memory.py) --------------------------------------------
-#: Per-axis scales of the memory-free optimum searched when a calibration's T_mem makes the
-#: memory effect matter (2^(j/8), j = -16..16: 1/4x to 4x per axis, 64x in cells each way).
-MEMORY_SEARCH_SCALES = tuple(2.0 ** (j / 8.0) for j in range(-16, 17))
+#: Per-axis scales of the optimum without them searched when a calibration's T_mem or T_visit
+#: makes the memory effect or the occupied cells matter (2^(j/8), j = -16..16: 1/4x to 4x per
+#: axis, 64x in cells each way).
+SEARCH_SCALES = tuple(2.0 ** (j / 8.0) for j in range(-16, 17))
 
 _STATS_CACHE: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 
@@ -143,7 +144,7 @@ _STATS_CACHE: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 class Constants:
     """Medians and posterior samples of the hardware constants.
 
-    Attributes: ``t_setup, t_step, t_int, t_sub, t_mem`` (floats, medians) and
+    Attributes: ``t_setup, t_step, t_int, t_sub, t_mem, t_visit`` (floats, medians) and
     ``samples`` (dict name -> (S,) float64, same names without ``_ns``);
     ``units`` is ``"ns"`` or ``"T_step"`` (ratio mode); ``notes`` lists assumptions;
     ``fitted_on`` is the ray set the constants were fitted on alone, or None (all of them);
@@ -152,10 +153,11 @@ class Constants:
     """
 
     def __init__(self, t_setup, t_step, t_int, t_sub, samples, units, notes, fitted_on=None, t_mem=0.0,
-                 cache_bytes=None, largest_grid_bytes=None):
+                 cache_bytes=None, largest_grid_bytes=None, t_visit=0.0):
         self.t_setup, self.t_step, self.t_int, self.t_sub = (float(t_setup), float(t_step), float(t_int),
                                                              float(t_sub))
         self.t_mem = float(t_mem)
+        self.t_visit = float(t_visit)
         self.cache_bytes = None if cache_bytes is None else int(cache_bytes)
         self.largest_grid_bytes = None if largest_grid_bytes is None else int(largest_grid_bytes)
         self.samples = samples
@@ -178,17 +180,26 @@ class Constants:
             return 0.0
         return float(lines_beyond_cache(steps, tests, memory_bytes, self.cache_bytes))
 
-    def cost_samples(self, steps, tests, subgrids=0.0, memory_bytes=0.0) -> np.ndarray:
-        """(S,) predicted cost per ray for fixed counts (and grid bytes), one per posterior sample."""
+    @property
+    def has_visits(self) -> bool:
+        """The occupied-cell term is in the cost (a calibration fitted T_visit)."""
+        return self.t_visit > 0
+
+    def cost_samples(self, steps, tests, subgrids=0.0, memory_bytes=0.0, visits=0.0) -> np.ndarray:
+        """(S,) predicted cost per ray for fixed counts (grid bytes, occupied cells entered), one
+        per posterior sample."""
         s = self.samples
         out = s["t_setup"] + s["t_step"] * steps + s["t_int"] * tests + s["t_sub"] * subgrids
+        if visits > 0:
+            out = out + s["t_visit"] * visits
         lines = self.lines(steps, tests, memory_bytes)
         return out + s["t_mem"] * lines if lines > 0 else out
 
-    def cost(self, steps, tests, subgrids=0.0, memory_bytes=0.0) -> float:
-        """Predicted cost per ray under the median constants (the memory term needs the grid's bytes)."""
+    def cost(self, steps, tests, subgrids=0.0, memory_bytes=0.0, visits=0.0) -> float:
+        """Predicted cost per ray under the median constants (the memory term needs the grid's
+        bytes, the occupied-cell term the occupied cells a ray enters)."""
         return (self.t_setup + self.t_step * steps + self.t_int * tests + self.t_sub * subgrids
-                + self.t_mem * self.lines(steps, tests, memory_bytes))
+                + self.t_mem * self.lines(steps, tests, memory_bytes) + self.t_visit * visits)
 
 
 def _median_of(value, name):
@@ -206,7 +217,7 @@ def _median_of(value, name):
 def resolve_constants(constants=None, samples=None, ratio=None) -> Constants:
     """Constants from a calibration's medians/samples or from a ratio alone.
 
-    constants : mapping ``t_setup_ns, t_step_ns, t_int_ns[, t_sub_ns, t_mem_ns]`` -> ns (a
+    constants : mapping ``t_setup_ns, t_step_ns, t_int_ns[, t_sub_ns, t_mem_ns, t_visit_ns]`` -> ns (a
         float or a ``{"median": ...}`` block, e.g. a calibration's ``constants``); an optional
         ``fitted_on`` names the ray set they were fitted on alone (a note says so), and
         ``cache_bytes`` the cache T_mem was measured against (required with T_mem), and
@@ -231,12 +242,12 @@ def resolve_constants(constants=None, samples=None, ratio=None) -> Constants:
                      f"{RATIO_MODE_T_SUB_IN_T_STEP:g} (assumed); costs are in units of T_step")
         return Constants(0.0, 1.0, r, RATIO_MODE_T_SUB_IN_T_STEP,
                          dict(t_setup=one(0.0), t_step=one(1.0), t_int=one(r), t_sub=one(RATIO_MODE_T_SUB_IN_T_STEP),
-                              t_mem=one(0.0)),
+                              t_mem=one(0.0), t_visit=one(0.0)),
                          "T_step", notes)
     if constants is None and samples is None:
         raise ValueError("no calibration: run `calibrate run` first, pass a calibration file, or give a ratio "
                          "T_int/T_step")
-    names = ("t_setup", "t_step", "t_int", "t_sub", "t_mem")
+    names = ("t_setup", "t_step", "t_int", "t_sub", "t_mem", "t_visit")
     arrays = {}
     if samples is not None:
         for n in names:
@@ -284,6 +295,10 @@ def resolve_constants(constants=None, samples=None, ratio=None) -> Constants:
     else:
         med["t_mem"] = 0.0
         cache = None
+    if med.get("t_visit", 0.0) > 0:
+        notes.append(f"occupied cells: T_visit = {med['t_visit']:.3g} ns per occupied cell a ray enters")
+    else:
+        med["t_visit"] = 0.0
     size = next(iter(arrays.values())).size if arrays else 1
     for n in names:
         if n not in arrays:
@@ -299,7 +314,8 @@ def resolve_constants(constants=None, samples=None, ratio=None) -> Constants:
         if largest <= 0:
             raise ValueError(f"largest_grid_bytes must be > 0, got {largest}")
     return Constants(med["t_setup"], med["t_step"], med["t_int"], med["t_sub"], arrays, "ns", notes,
-                     fitted_on=fitted_on, t_mem=med["t_mem"], cache_bytes=cache, largest_grid_bytes=largest)
+                     fitted_on=fitted_on, t_mem=med["t_mem"], cache_bytes=cache, largest_grid_bytes=largest,
+                     t_visit=med["t_visit"])
 
 
 def extrapolation_note(k: Constants, memory_bytes) -> str | None:
@@ -467,64 +483,87 @@ def _effect_dicts(sel):
 
 
 def _uniform_counts(stats, res, k: Constants, terms):
-    """(steps, tests, references, memory bytes) of a uniform grid under the general model."""
+    """(steps, tests, references, memory bytes, occupied cells entered) of a uniform grid under the
+    general model."""
     _, steps, tests = predict_uniform(stats, res, k.t_setup, k.t_step, k.t_int, overlap="exact", terms=terms)
     refs = expected_refs(stats, res, overlap="exact")
-    return steps, tests, refs, _memory_bytes(res[0] * res[1] * res[2], refs, 1)
+    return (steps, tests, refs, _memory_bytes(res[0] * res[1] * res[2], refs, 1),
+            visits_per_ray(stats, res, terms=terms))
 
 
-def _memory_effect(k: Constants, steps, tests, memory_bytes, what: str, subgrids=0.0) -> dict:
+def _term_effect(name: str, share: float, head: str, what: str) -> dict:
+    """An optional term's effect entry: *used*, i.e. it moves the resolution, when its share of the
+    predicted time is more than EFFECT_TOLERANCE; ``what`` says how it moved it."""
+    used = share > EFFECT_TOLERANCE
+    return dict(name=name, used=bool(used), change=float(share), reason=(
+        f"{head}, {100 * share:.1f}% of the predicted time "
+        + (f"({what})" if used else f"(below the {100 * EFFECT_TOLERANCE:g}% tolerance: the resolution "
+                                    "ignores it)")))
+
+
+def _visits_effect(k: Constants, cost: float, visits: float, what: str) -> dict:
+    """The occupied-cell effect's entry for a plan of predicted ``cost`` (``change``: the share of
+    it the term is)."""
+    share = k.t_visit * visits / cost if cost > 0 else 0.0
+    return _term_effect("occupied-cells", share, f"{visits:.3g} occupied cells entered per ray "
+                        f"(models.general.visits_per_ray, approximate) at {k.t_visit:.3g} ns each", what)
+
+
+def _memory_effect(k: Constants, steps, tests, memory_bytes, what: str, subgrids=0.0, visits=0.0) -> dict:
     """The memory effect's entry for a plan (``change``: the share of the predicted time its term
-    is).  The term is in every predicted time of a calibration with T_mem; the effect is *used*,
-    i.e. it moves the resolution, only when that share is more than EFFECT_TOLERANCE."""
-    total = k.cost(steps, tests, subgrids, memory_bytes)
+    is).  The term is in every predicted time of a calibration with T_mem; the effect is *used*
+    when that share is more than EFFECT_TOLERANCE."""
+    total = k.cost(steps, tests, subgrids, memory_bytes, visits)
     lines = k.lines(steps, tests, memory_bytes)
     share = k.t_mem * lines / total if total > 0 else 0.0
-    used = share > EFFECT_TOLERANCE
-    return dict(name="memory", used=bool(used), change=float(share), reason=(
-        f"the grid's {memory_bytes / 2 ** 20:.3g} MiB against the host's {k.cache_bytes / 2 ** 20:.3g} MiB cache: "
-        f"{lines:.3g} cache lines per ray from beyond it, {100 * share:.1f}% of the predicted time "
-        + (f"({what})" if used else f"(below the {100 * EFFECT_TOLERANCE:g}% tolerance: the resolution "
-                                      "ignores it)")))
+    return _term_effect("memory", share, f"the grid's {memory_bytes / 2 ** 20:.3g} MiB against the host's "
+                        f"{k.cache_bytes / 2 ** 20:.3g} MiB cache: {lines:.3g} cache lines per ray from beyond it",
+                        what)
 
 
 def analytic_uniform_plan(stats, k: Constants, mailbox):
     """Single-level plan of the general model with the effects :func:`models.effects.select_effects` keeps.
 
     Rays terminate at the first hit (the kernel's behaviour), exact overlap (the kernel's
-    default insertion).  With a calibration's T_mem, when the memory effect's term
-    (models/memory.py) is more than EFFECT_TOLERANCE of the predicted time at the optimum,
-    the resolution is the cheapest of MEMORY_SEARCH_SCALES around the memory-free optimum.
-    Returns (plan, effects) like :func:`paper_plan`; plan also holds ``terms`` (the selected
+    default insertion).  With a calibration's T_mem or T_visit, when the memory effect's
+    term (models/memory.py) or the occupied cells' (models.general.visits_per_ray) is more
+    than EFFECT_TOLERANCE of the predicted time at the optimum, the resolution is the
+    cheapest of SEARCH_SCALES around the optimum without them.  Returns (plan, effects)
+    like :func:`paper_plan`; plan also holds ``terms`` (the selected
     :class:`models.general.Terms`).
     """
     sel = select_effects(stats, k.t_setup, k.t_step, k.t_int, mailbox=mailbox, termination=True, overlap="exact",
                          levels=1)
     res = sel.resolution
-    steps, tests, refs, mem = _uniform_counts(stats, res, k, sel.terms)
+    steps, tests, refs, mem, visits = _uniform_counts(stats, res, k, sel.terms)
     effects = _effect_dicts(sel)
-    memory_candidates = None
-    if k.has_memory:
+    candidates = None
+    if k.has_memory or k.has_visits:
         cands = {}
-        for sc in MEMORY_SEARCH_SCALES:
+        for sc in SEARCH_SCALES:
             r = _scaled(res, sc)
             if r in cands or max(r) > MAX_CELLS_PER_AXIS or r[0] * r[1] * r[2] > MAX_TOTAL_CELLS:
                 continue
             c = _uniform_counts(stats, r, k, sel.terms)
-            cands[r] = (k.cost(c[0], c[1], 0.0, c[3]), c)
+            cands[r] = (k.cost(c[0], c[1], 0.0, c[3], c[4]), c)
         best = min(cands, key=lambda r: cands[r][0])
-        eff = _memory_effect(k, *cands[best][1][:2], cands[best][1][3],
-                             f"resolution searched from 1/4x to 4x per axis of the memory-free optimum "
-                             f"{_fmt_res(res)}: {_fmt_res(best)}")
-        effects.append(eff)
-        if eff["used"]:
+        cost, c = cands[best]
+        what = (f"resolution searched from 1/4x to 4x per axis of the optimum without it "
+                f"{_fmt_res(res)}: {_fmt_res(best)}")
+        new = []
+        if k.has_memory:
+            new.append(_memory_effect(k, c[0], c[1], c[3], what, visits=c[4]))
+        if k.has_visits:
+            new.append(_visits_effect(k, cost, c[4], what))
+        effects.extend(new)
+        if any(e["used"] for e in new):
             res = best
-            steps, tests, refs, mem = cands[best][1]
-            memory_candidates = [(r, c[1]) for r, c in cands.items()]
+            steps, tests, refs, mem, visits = c
+            candidates = [(r, cc[1]) for r, cc in cands.items()]
     plan = dict(levels=_level_dicts_uniform(stats, res, refs), steps=steps, tests=tests, subgrids=0.0,
-                memory_bytes=mem, terms=sel.terms, selection=sel)
-    if memory_candidates is not None:
-        plan["memory_candidates"] = memory_candidates
+                memory_bytes=mem, visits=visits, terms=sel.terms, selection=sel)
+    if candidates is not None:
+        plan["candidates"] = candidates
     return plan, effects
 
 
@@ -548,8 +587,8 @@ def _nested_plan(scene, stats, k: Constants, L):
             try:
                 c = nested_counts(geom, stats.box_lo, stats.box_hi, _scaled(centre, scales[i]), L, k.ratio,
                                   overlap=overlap, corners=corners, leaves="analytic",
-                                  overlap_test=triangle_box_overlap)
-                memo[i] = (k.cost(c.steps, c.tests, c.subgrids, _nested_memory_bytes(c)), c)
+                                  overlap_test=triangle_box_overlap, separate_fraction=stats.separate_fraction)
+                memo[i] = (k.cost(c.steps, c.tests, c.subgrids, _nested_memory_bytes(c), c.visits), c)
             except TooManyPairs:
                 memo[i] = (math.inf, None)
         return memo[i][0]
@@ -599,18 +638,20 @@ def _nested_levels(counts):
 def _analytic_nested(scene, stats, k: Constants, L, mailbox):
     counts, overlap, how = _nested_plan(scene, stats, k, L)
     frac, _ = termination_fraction(stats)
-    ns0 = k.cost(counts.steps, counts.tests, counts.subgrids, _nested_memory_bytes(counts))
+    ns0 = k.cost(counts.steps, counts.tests, counts.subgrids, _nested_memory_bytes(counts), counts.visits)
     sel = select_effects(stats, k.t_setup, k.t_step, k.t_int, mailbox=mailbox, termination=True, overlap="exact",
                          levels=L, subgrid_ns=k.t_sub * counts.subgrids * frac,
                          clustering_change=clustering_change(counts, stats, k.t_step, k.t_int, ns0))
     f = sel.terms.traversed_fraction
     plan = dict(levels=_nested_levels(counts), steps=f * counts.steps, tests=f * counts.tests,
                 subgrids=f * counts.subgrids, memory_bytes=_nested_memory_bytes(counts),
+                visits=terminated_visits(counts.visits, stats.separate_fraction, f),
                 terms=sel.terms, counts=counts, overlap=overlap)
     effects = _effect_dicts(sel)
     if k.has_memory:
         effects.append(_memory_effect(k, plan["steps"], plan["tests"], plan["memory_bytes"],
-                                      "in the cost of every screened top resolution", plan["subgrids"]))
+                                      "in the cost of every screened top resolution", plan["subgrids"],
+                                      plan["visits"]))
     effects.append(dict(name="nested-model", used=True, change=0.0,
                         reason=(f"{L}-level Crofton composition over the built structure ({how}); "
                                 f"termination scales its counts by {100 * f:.0f}%")))
@@ -627,7 +668,8 @@ def _deepen(k: Constants, uniform, nested, stops, how: str, min_gain: float | No
     if min_gain is None:
         min_gain = DEEPEN_MIN_GAIN if k.units == "ns" else DEEPEN_MIN_GAIN_RATIO_MODE
     best = uniform()
-    best_ns = k.cost(best[0]["steps"], best[0]["tests"], 0.0, best[0].get("memory_bytes", 0.0))
+    best_ns = k.cost(best[0]["steps"], best[0]["tests"], 0.0, best[0].get("memory_bytes", 0.0),
+                     best[0].get("visits", 0.0))
     tried = [f"L=1: {best_ns:.4g}"]
     # the gain is relative to the whole cost of a ray, set-up included (unknown in ratio mode)
     setup = RATIO_MODE_T_SETUP_IN_T_STEP * k.t_step if k.units != "ns" else 0.0
@@ -637,7 +679,8 @@ def _deepen(k: Constants, uniform, nested, stops, how: str, min_gain: float | No
         except stops as exc:
             tried.append(f"L={L}: not modelled ({exc})")
             break
-        ns = k.cost(cand[0]["steps"], cand[0]["tests"], cand[0]["subgrids"], cand[0].get("memory_bytes", 0.0))
+        ns = k.cost(cand[0]["steps"], cand[0]["tests"], cand[0]["subgrids"], cand[0].get("memory_bytes", 0.0),
+                    cand[0].get("visits", 0.0))
         tried.append(f"L={L}: {ns:.4g}")
         if ns + setup >= (best_ns + setup) * (1.0 - min_gain):
             break
@@ -693,8 +736,10 @@ def fit_count_curves(scales, steps, tests):
 
 
 def _count(grid, o, d):
+    """Per-ray means from the instrumented twin: (steps, tests, subgrids, occupied cells entered, grid info)."""
     steps, tests, sub = grid.count(o, d)
-    return float(steps.mean()), float(tests.mean()), float(sub.mean()), grid.info
+    return float(steps.mean()), float(tests.mean()), float(sub.mean()), float(grid.count_visits(o, d).mean()), \
+        grid.info
 
 
 def _simulated_uniform(scene, stats, k: Constants, rays, mailbox):
@@ -710,19 +755,24 @@ def _simulated_uniform(scene, stats, k: Constants, rays, mailbox):
         res = _scaled(base, s * shift)
         if res[0] * res[1] * res[2] > SIM_MAX_CELLS or any(r[1] == res for r in rows):
             continue
-        st, te, _, _ = _count(Grid.uniform(scene, res, mailbox=mailbox), o, d)
-        rows.append((s * shift, res, st, te))
+        st, te, _, vi, _ = _count(Grid.uniform(scene, res, mailbox=mailbox), o, d)
+        rows.append((s * shift, res, st, te, vi))
     sc = np.array([r[0] for r in rows])
     st = np.array([r[2] for r in rows])
     te = np.array([r[3] for r in rows])
+    vi = np.array([r[4] for r in rows])
     def mem(scales):  # the grid's bytes at each scale (the model's references)
         if not k.has_memory:
             return np.zeros(len(scales))
         return np.array([float(_uniform_counts(stats, _scaled(base, x), k, Terms(mailbox=mailbox))[3])
                          for x in scales])
 
+    def visits(scales):  # occupied cells entered: the kernel's counts, interpolated in log scale
+        return np.interp(np.log(scales), np.log(sc), vi)
+
     def cost_of(scales, steps_s, tests_s):
-        return np.array([k.cost(a_, b_, 0.0, m_) for a_, b_, m_ in zip(steps_s, tests_s, mem(scales))])
+        return np.array([k.cost(a_, b_, 0.0, m_, v_)
+                         for a_, b_, m_, v_ in zip(steps_s, tests_s, mem(scales), visits(scales))])
 
     measured_cost = cost_of(sc, st, te)
     if len(rows) >= 3:  # enough distinct resolutions to fit the three test terms
@@ -739,17 +789,17 @@ def _simulated_uniform(scene, stats, k: Constants, rays, mailbox):
         edge_note = (f"; bounded by the simulation's {SIM_MAX_CELLS:,}-cell budget: the optimum may be finer"
                      if shift < 1.0 else "; at the finest simulated resolution: the optimum may be finer")
     res = _scaled(base, s_best)
-    steps, tests, _, info = _count(Grid.uniform(scene, res, mailbox=mailbox), o, d)
+    steps, tests, _, n_visits, info = _count(Grid.uniform(scene, res, mailbox=mailbox), o, d)
     refs = float(info["n_refs"])
     model_steps = steps_per_ray(stats.extent, res)
     _, _, model_tests = predict_uniform(stats, res, 0.0, 1.0, 1.0, overlap="exact", terms=Terms(mailbox=mailbox))
     cells = res[0] * res[1] * res[2]
     plan = dict(levels=[dict(level=1, resolution=_res_list(res), grids=1, cells=int(cells), references=refs,
                              memory_bytes=int(info["memory_bytes"]))],
-                steps=steps, tests=tests, subgrids=0.0, memory_bytes=int(info["memory_bytes"]),
+                steps=steps, tests=tests, subgrids=0.0, memory_bytes=int(info["memory_bytes"]), visits=n_visits,
                 simulation=dict(rays=SIM_RAYS, ray_set=rays, scales=sc.tolist(), steps=st.tolist(),
-                                tests=te.tolist(), steps_fit=a.tolist(), tests_fit=b.tolist(), best_scale=s_best,
-                                analytic_resolution=_res_list(base)))
+                                tests=te.tolist(), visits=vi.tolist(), steps_fit=a.tolist(), tests_fit=b.tolist(),
+                                best_scale=s_best, analytic_resolution=_res_list(base)))
     effects.append(dict(
         name="simulated", used=True, change=float(abs(tests / model_tests - 1.0)) if model_tests > 0 else 0.0,
         reason=(f"instrumented kernel on {SIM_RAYS} {rays} rays at {len(rows)} resolutions: at the optimum the "
@@ -794,8 +844,9 @@ def _simulated_nested(scene, stats, k: Constants, L, rays, mailbox):
     sub = _kernel_subgrid_resolutions(scene, stats, counts, plan["overlap"])
     grid = Grid.nested(scene, levels=L, resolution=counts.top_resolution, subgrid_resolutions=sub, mailbox=mailbox)
     o, d = _rays(scene, rays, SIM_RAYS, SIM_SEED)
-    steps, tests, subgrids, info = _count(grid, o, d)
-    plan = dict(plan, steps=steps, tests=tests, subgrids=subgrids, memory_bytes=int(info["memory_bytes"]))
+    steps, tests, subgrids, n_visits, info = _count(grid, o, d)
+    plan = dict(plan, steps=steps, tests=tests, subgrids=subgrids, memory_bytes=int(info["memory_bytes"]),
+                visits=n_visits)
     plan["levels"] = [dict(lv) for lv in plan["levels"]]
     plan["levels"][-1]["references"] = float(info["n_refs"])
     effects.append(dict(name="simulated", used=True, change=0.0,
@@ -827,8 +878,8 @@ def _baseline_table(stats, k: Constants, terms):
         out[name] = _res_list(levels[0])
         d = dict(levels=[_res_list(x) for x in levels])
         if len(levels) == 1:
-            steps, tests, _, mem = _uniform_counts(stats, levels[0], k, terms)
-            d.update(steps_per_ray=steps, tests_per_ray=tests, cost_per_ray=k.cost(steps, tests, 0.0, mem))
+            steps, tests, _, mem, visits = _uniform_counts(stats, levels[0], k, terms)
+            d.update(steps_per_ray=steps, tests_per_ray=tests, cost_per_ray=k.cost(steps, tests, 0.0, mem, visits))
         detail[name] = d
     return out, detail
 
@@ -884,23 +935,24 @@ def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analyt
     if note:
         notes.append(note)
     steps, tests, subgrids = float(plan["steps"]), float(plan["tests"]), float(plan["subgrids"])
-    # the paper fidelity is the talk's model: no memory term
+    # the paper fidelity is the talk's model: no memory term, no occupied cells
     plan_bytes = float(plan["memory_bytes"]) if fidelity != "paper" else 0.0
-    cost = _interval(k.cost_samples(steps, tests, subgrids, plan_bytes))
+    visits = float(plan.get("visits", 0.0)) if fidelity != "paper" else 0.0
+    cost = _interval(k.cost_samples(steps, tests, subgrids, plan_bytes, visits))
     predicted = dict(ns_per_ray=cost if k.units == "ns" else None, steps_per_ray=steps, tests_per_ray=tests,
-                     subgrids_per_ray=subgrids)
+                     subgrids_per_ray=subgrids, visits_per_ray=visits)
     if k.has_memory and fidelity != "paper":
         predicted["lines_per_ray"] = k.lines(steps, tests, plan_bytes)
     if k.units != "ns":
         predicted["cost_t_step"] = cost
     terms = plan.get("terms") or Terms(mailbox=mailbox)
-    if fidelity == "analytic" and "memory_candidates" in plan and k.samples["t_step"].size > 1:
-        # the memory term has no closed-form optimum: each posterior sample picks among the
-        # searched candidates
-        res_c = [r for r, _ in plan["memory_candidates"]]
-        cnt = np.array([c for _, c in plan["memory_candidates"]], dtype=np.float64)  # steps, tests, refs, bytes
-        costs = np.stack([k.cost_samples(c[0], c[1], 0.0, c[3]) for c in cnt], axis=1)
-        med = np.array([k.cost(c[0], c[1], 0.0, c[3]) for c in cnt])
+    if fidelity == "analytic" and "candidates" in plan and k.samples["t_step"].size > 1:
+        # the memory and occupied-cell terms have no closed-form optimum: each posterior sample
+        # picks among the searched candidates
+        res_c = [r for r, _ in plan["candidates"]]
+        cnt = np.array([c for _, c in plan["candidates"]], dtype=np.float64)  # steps, tests, refs, bytes, visits
+        costs = np.stack([k.cost_samples(c[0], c[1], 0.0, c[3], c[4]) for c in cnt], axis=1)
+        med = np.array([k.cost(c[0], c[1], 0.0, c[3], c[4]) for c in cnt])
         (i_lo, i_hi), pen = discrete_posterior_optimum(costs, med, [r[0] * r[1] * r[2] for r in res_c])
         predicted["resolution_ci95"] = [_res_list(res_c[i_lo]), _res_list(res_c[i_hi])]
         predicted["uncertainty_penalty"] = pen
@@ -911,12 +963,14 @@ def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analyt
         predicted["uncertainty_penalty"] = post.penalty
     # The recommendation under the same model as the baselines (general model, selected terms).
     if len(plan["levels"]) == 1:
-        _, m_steps, m_tests = predict_uniform(stats, plan["levels"][0]["resolution"], 0.0, 1.0, 1.0, overlap="exact",
-                                              terms=terms)
-        predicted["model_cost_per_ray"] = k.cost(m_steps, m_tests, 0.0, plan_bytes)
+        res1 = plan["levels"][0]["resolution"]
+        _, m_steps, m_tests = predict_uniform(stats, res1, 0.0, 1.0, 1.0, overlap="exact", terms=terms)
+        predicted["model_cost_per_ray"] = k.cost(m_steps, m_tests, 0.0, plan_bytes,
+                                                 visits_per_ray(stats, res1, terms=terms))
     elif "counts" in plan:
         c, f = plan["counts"], terms.traversed_fraction
-        predicted["model_cost_per_ray"] = k.cost(f * c.steps, f * c.tests, f * c.subgrids, plan_bytes)
+        predicted["model_cost_per_ray"] = k.cost(f * c.steps, f * c.tests, f * c.subgrids, plan_bytes,
+                                                 terminated_visits(c.visits, stats.separate_fraction, f))
     else:
         predicted["model_cost_per_ray"] = None
     base, base_detail = _baseline_table(stats, k, terms)
@@ -1035,7 +1089,7 @@ def constants_from_args(args, rays: str | None = None) -> dict:
                         "pass --calibration FILE, or give your own ratio with --ratio R")
     k = load_calibration_constants(path, rays)
     s = k.samples
-    names = ("t_setup", "t_step", "t_int", "t_sub", "t_mem")
+    names = ("t_setup", "t_step", "t_int", "t_sub", "t_mem", "t_visit")
     constants = {f"{n}_ns": getattr(k, n) for n in names}
     if k.fitted_on:
         constants["fitted_on"] = k.fitted_on

@@ -206,8 +206,8 @@ CV_FOLDS = 5
 
 def _cross_validated(result, by_rays, recs, seed, priors):
     """(median error over every in-context configuration, {ray set: median}), each configuration
-    predicted by the posterior maximum of its ray set's model (with T_mem when that set's fit has
-    it) fitted to the other CV_FOLDS - 1 folds; (nan, {}) when a fold cannot be fitted."""
+    predicted by the posterior maximum of its ray set's model (with T_mem and T_visit when that
+    set's fit has them) fitted to the other CV_FOLDS - 1 folds; (nan, {}) when a fold cannot be fitted."""
     groups = {}
     for r in recs:
         if r["kind"] == "in_context" and r["values_ns"]:
@@ -216,8 +216,9 @@ def _cross_validated(result, by_rays, recs, seed, priors):
     for name, group in sorted(groups.items(), key=lambda kv: str(kv[0])):
         fit = by_rays.get(name, result)
         design = calfile.design_from_measurements(group, "in_context", include_held_back=True)
-        if "t_mem_ns" not in fit.names:
-            design.pop("misses", None)
+        for col, constant, _ in calfile.OPTIONAL_TERMS:
+            if constant not in fit.names:
+                design.pop(col, None)
         try:
             e = _fit.cross_validated_errors(design, min(CV_FOLDS, len(group)), seed, priors=priors)
         except ValueError:
@@ -414,8 +415,9 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
                     ratio_rel_width=_rel_width(result), pinned_core=pin.core, pin_note=pin.note,
                     rays_per_batch=suites.RAYS_PER_BATCH, min_value_ns=MIN_VALUE_NS,
                     cache_bytes=cache, cache_source=cache_source)
-        if "t_mem_skipped" in result.diagnostics:
-            warnings.append(result.diagnostics["t_mem_skipped"])
+        for _, name, _ in calfile.OPTIONAL_TERMS:
+            if f"{name[:-3]}_skipped" in result.diagnostics:
+                warnings.append(result.diagnostics[f"{name[:-3]}_skipped"])
         if skipped:
             meta["by_rays_skipped"] = skipped
         from ._kernels import CFLAGS, traverse_isa

@@ -250,7 +250,7 @@ def _cost_at(res, t_mem, cache):
     k = resolve_constants(constants=_constants(t_mem, cache))
     stats = scene_statistics(Scene.builtin("sphere"))
     terms = select_effects(stats, k.t_setup, k.t_step, k.t_int, termination=True, overlap="exact", levels=1).terms
-    steps, tests, _, mem = _uniform_counts(stats, tuple(res), k, terms)
+    steps, tests, _, mem, _ = _uniform_counts(stats, tuple(res), k, terms)
     return k.cost(steps, tests, 0.0, mem)
 
 

@@ -1,0 +1,291 @@
+"""Occupied cells: the cells holding triangles that a ray enters.
+
+Entering such a cell costs more than stepping through an empty one (its references
+start a new run of packs, and whether a cell is occupied is a branch the predictor
+cannot know).  The instrumented twin counts these *visits*; ``calibrate run`` records
+them and fits ``T_visit`` when the timings call for it; the models estimate them
+(:func:`models.general.occupied_cells`, :func:`models.general.visits_per_ray`,
+``models.nested.nested_counts(...).visits``) and ``predict`` adds ``T_visit`` per
+visit.  These tests check the kernel's count against a brute-force count, the model
+against the kernel's grids, a planted T_visit against the fit, the file's checks, and
+the prediction's arithmetic.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from calibrate import calfile
+from calibrate import fit as F
+from calibrate._grid import Grid, Scene
+from calibrate.predict import predict, resolve_constants
+from calibrate.rays import isotropic
+from calibrate.scenes import scattered_compact
+from calibrate.suites import empty_grid, resolution_for_cells
+from conftest import planted_counts
+from models.effects import termination_fraction
+from models.general import (VISITS_SURFACE, Terms, occupied_cells, predict_uniform, terminated_visits,
+                            visits_per_ray)
+from models.nested import nested_counts
+from models.stats import triangle_geometry
+
+RAYS = 2048
+TRUTH = {"t_setup_ns": 80.0, "t_step_ns": 10.0, "t_int_ns": 1.3, "t_sub_ns": 60.0, "t_visit_ns": 5.0}
+PRIORS = {"t_setup_ns": (70.0, 0.3), "t_sub_ns": (60.0, 0.7)}
+NOISE_REL = 0.02
+N_CONFIGS = 40
+N_REPEATS = 5
+
+
+def _scattered(n: int, seed: int) -> Scene:
+    v, f = scattered_compact(n, seed=seed)
+    return Scene(v, f, name=f"scattered {n}")
+
+
+# -- the kernel's count ---------------------------------------------------------------------------
+
+def _brute_visits(grid: Grid, occupied: np.ndarray, o, d, t_hit):
+    """Per ray, the occupied cells whose box the ray's walk interval enters before its hit, by a
+    slab test against every occupied cell; and whether the ray is clear of ties (a cell it only
+    grazes, or a hit on a cell's face), where rounding may decide either way."""
+    lo = np.asarray(grid.info["box_lo"], dtype=np.float64)
+    hi = np.asarray(grid.info["box_hi"], dtype=np.float64)
+    n = np.asarray(grid.resolution, dtype=np.int64)
+    cell = (hi - lo) / n
+    iz, iy, ix = np.nonzero(occupied)
+    c_lo = lo + np.stack([ix, iy, iz], axis=1) * cell
+    c_hi = c_lo + cell
+    counts = np.zeros(o.shape[0], dtype=np.int64)
+    clear = np.ones(o.shape[0], dtype=bool)
+    for k in range(o.shape[0]):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv = 1.0 / d[k]
+            ta = np.nanmax(np.minimum((lo - o[k]) * inv, (hi - o[k]) * inv))
+            tb = np.nanmin(np.maximum((lo - o[k]) * inv, (hi - o[k]) * inv))
+            t0 = np.nanmax(np.minimum((c_lo - o[k]) * inv, (c_hi - o[k]) * inv), axis=1)
+            t1 = np.nanmin(np.maximum((c_lo - o[k]) * inv, (c_hi - o[k]) * inv), axis=1)
+        ta = max(ta, 0.0)
+        if not ta < tb:
+            continue
+        a, b = np.maximum(t0, ta), np.minimum(t1, tb)
+        scale = tb - ta
+        entered = (b > a) & (a < t_hit[k])
+        counts[k] = int(entered.sum())
+        grazing = np.abs(b - a) < 1e-9 * scale
+        at_face = np.isfinite(t_hit[k]) & (np.abs(a - t_hit[k]) < 1e-9 * scale)
+        clear[k] = not np.any((b >= a - 1e-9 * scale) & (grazing | at_face))
+    return counts, clear
+
+
+@pytest.mark.parametrize("i", range(3))
+def test_the_kernel_counts_the_occupied_cells_each_ray_enters_before_its_hit(i):
+    scene = _scattered(40 + 20 * i, seed=i)
+    grid = Grid.uniform(scene, (5 + i, 6, 7 - i))
+    o, d = isotropic(scene.box_lo, scene.box_hi, 400, seed=i)
+    t, _, steps, _, _ = grid.count(o, d, hits=True)
+    visits = grid.count_visits(o, d)
+    occupied = grid.top_counts() > 0
+    assert 0 < occupied.sum() < occupied.size
+    want, clear = _brute_visits(grid, occupied, o, d, t)
+    assert clear.mean() > 0.9
+    np.testing.assert_array_equal(visits[clear], want[clear])
+    assert np.all(visits <= steps) and visits.sum() > 0
+
+
+def test_an_empty_grid_has_no_visits_and_a_nested_grid_counts_only_cells_that_hold_triangles():
+    o, d = isotropic(np.zeros(3), np.ones(3), 256, seed=0)
+    empty = empty_grid(np.zeros(3), np.ones(3), (6, 6, 6), "watertight")
+    steps, _, _ = empty.count(o, d)
+    assert steps.sum() > 0 and not empty.count_visits(o, d).any()
+    scene = _scattered(200, seed=5)
+    o, d = isotropic(scene.box_lo, scene.box_hi, 512, seed=1)
+    nested = Grid.nested(scene, levels=2)
+    steps, tests, subgrids = nested.count(o, d)
+    visits = nested.count_visits(o, d)
+    # a subgrid's own cell is not an occupied cell: every cell entered is a top cell, a subgrid
+    # cell that holds triangles, or an empty one
+    assert np.all(visits <= steps - subgrids) and visits.sum() > 0
+    assert np.all((visits > 0) == (tests > 0))
+
+
+# -- the model --------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("name, rel", [("sphere", 0.15), ("scattered-compact", 0.05), ("cylinder1996", 0.15)])
+def test_the_occupied_cell_model_agrees_with_the_kernels_grids(name, rel):
+    scene = Scene.builtin(name)
+    st = scene.stats
+    for cells_per_triangle in (0.25, 2.0):
+        res = resolution_for_cells(cells_per_triangle * st.n_triangles, st.extent)
+        kernel = int((Grid.uniform(scene, res).top_counts() > 0).sum())
+        assert occupied_cells(st, res) == pytest.approx(kernel, rel=rel), res
+
+
+def test_a_coarse_grid_of_separate_triangles_is_all_occupied_and_a_fine_one_holds_each_triangles_cells():
+    scene = Scene.builtin("scattered-compact")
+    st = scene.stats
+    assert st.separate_fraction == 1.0
+    assert occupied_cells(st, (2, 2, 2)) == pytest.approx(8.0, rel=1e-9)
+    fine = (400, 400, 400)
+    # few triangles share a cell: about one occupied cell per reference
+    from models.general import expected_refs
+    assert occupied_cells(st, fine) == pytest.approx(expected_refs(st, fine), rel=0.01)
+
+
+def test_enumerated_nested_counts_enter_exactly_the_kernels_occupied_cells():
+    scene = Scene.builtin("sphere")
+    st = scene.stats
+    res = (30, 29, 30)
+    geom = triangle_geometry(scene.vertices, scene.faces)
+    c = nested_counts(geom, st.box_lo, st.box_hi, res, 1, 0.1, overlap="exact", corners=scene.vertices[scene.faces])
+    kernel = int((Grid.uniform(scene, res).top_counts() > 0).sum())
+    cs = st.extent / np.asarray(res)
+    s_c = 2.0 * (cs[0] * cs[1] + cs[1] * cs[2] + cs[2] * cs[0])
+    assert c.visits == pytest.approx(kernel * s_c / st.surface, rel=1e-12)
+    assert c.visits == pytest.approx(visits_per_ray(st, res), rel=0.15)
+
+
+def test_termination_scales_separate_triangles_and_caps_a_surface():
+    v = np.array([0.5, 3.0, 12.0])
+    np.testing.assert_array_equal(terminated_visits(v, 0.3, 1.0), v)  # rays that never stop
+    np.testing.assert_allclose(terminated_visits(v, 1.0, 0.4), 0.4 * v)
+    np.testing.assert_allclose(terminated_visits(v, 0.0, 0.4), VISITS_SURFACE * np.minimum(v, 1.0))
+    mixed = terminated_visits(v, 0.25, 0.4)
+    np.testing.assert_allclose(mixed, 0.25 * 0.4 * v + 0.75 * VISITS_SURFACE * np.minimum(v, 1.0))
+    assert isinstance(terminated_visits(3.0, 0.0, 0.5), float)
+
+
+@pytest.mark.parametrize("name, low, high", [("scattered-compact", 0.9, 1.1), ("sphere", 0.7, 1.3),
+                                             ("room", 0.6, 1.6)])
+def test_modelled_visits_with_termination_are_near_the_kernels(name, low, high):
+    scene = Scene.builtin(name)
+    st = scene.stats
+    frac, _ = termination_fraction(st)
+    o, d = isotropic(scene.box_lo, scene.box_hi, 2048, seed=3)
+    for cells_per_triangle in (0.25, 1.0):
+        res = resolution_for_cells(cells_per_triangle * st.n_triangles, st.extent)
+        kernel = float(Grid.uniform(scene, res).count_visits(o, d).mean())
+        model = visits_per_ray(st, res, terms=Terms(traversed_fraction=frac))
+        assert low < model / kernel < high, (res, model, kernel)
+
+
+# -- the fit ------------------------------------------------------------------------------------------
+
+def _records(seed: int, truth=TRUTH) -> list[dict]:
+    """In-context records whose occupied cells are 5-100% of their steps, values from ``truth``."""
+    rng = np.random.default_rng(seed)
+    recs = []
+    for j in range(N_CONFIGS):
+        counts = planted_counts(rng, j, RAYS)
+        counts["visits"] = int(counts["steps"] * rng.uniform(0.05, 1.0))
+        mu = (RAYS * truth["t_setup_ns"] + counts["steps"] * truth["t_step_ns"] + counts["tests"] * truth["t_int_ns"]
+              + counts["subgrids"] * truth["t_sub_ns"] + counts["visits"] * truth["t_visit_ns"])
+        recs.append(dict(kind="in_context", scene=f"scene{j % 5}", resolution=[j + 1] * 3, intersector="watertight",
+                         name=f"scene{j % 5} #{j}", ray_set="isotropic", rays=RAYS, **counts, held_back=False,
+                         warnings=[],
+                         values_ns=[float(v) for v in mu * np.exp(NOISE_REL * rng.standard_normal(N_REPEATS))]))
+    return recs
+
+
+ALL = calfile.OPTIONAL_COUNT_FIELDS
+
+
+def _design(recs):
+    return calfile.design_from_measurements(recs, "in_context", optional=ALL)
+
+
+def test_a_calibration_leaves_visits_out_unless_asked():
+    recs = _records(0)
+    assert "visits" not in calfile.design_from_measurements(recs, "in_context")
+    assert "visits" in _design(recs)
+    with pytest.raises(ValueError, match="unknown optional count 'packs'"):
+        calfile.design_from_measurements(recs, "in_context", optional=("packs",))
+
+
+@pytest.fixture(scope="module")
+def planted():
+    recs = _records(0)
+    result = calfile.fit_in_context(_design(recs), seed=0, priors=PRIORS)
+    cal = calfile.from_fit(result, fingerprint={"cpu_model": "Test CPU"}, measurements=recs, meta={})
+    return recs, result, cal
+
+
+def test_the_fit_recovers_a_planted_t_visit(planted):
+    _, result, _ = planted
+    assert "t_visit_ns" in result.names and "t_visit_skipped" not in result.diagnostics
+    for name in ("t_step_ns", "t_int_ns", "t_visit_ns"):
+        c = result.constants[name]
+        assert c["median"] == pytest.approx(TRUTH[name], rel=0.05), name
+        assert c["ci95"][0] <= TRUTH[name] <= c["ci95"][1], name
+
+
+def test_an_absent_t_visit_is_left_out_and_the_fit_says_why():
+    recs = _records(1, truth=dict(TRUTH, t_visit_ns=0.0))
+    result = calfile.fit_in_context(_design(recs), seed=0, priors=PRIORS)
+    assert "t_visit_ns" not in result.names
+    assert result.diagnostics["t_visit_skipped"].startswith("T_visit not fitted")
+    assert result.constants["t_step_ns"]["median"] == pytest.approx(TRUTH["t_step_ns"], rel=0.05)
+
+
+@pytest.mark.parametrize("i", range(3))
+def test_the_gate_is_a_likelihood_ratio_with_the_flat_prior_taken_out(i):
+    with_it = _design(_records(10 + i))
+    without = _design(_records(10 + i, truth=dict(TRUTH, t_visit_ns=0.0)))
+    g_with = F.log_posterior_gain(with_it, "visits", seed=i, priors=PRIORS)
+    g_without = F.log_posterior_gain(without, "visits", seed=i, priors=PRIORS)
+    assert g_with > 20 * calfile.MEMORY_MIN_GAIN
+    assert g_without < calfile.MEMORY_MIN_GAIN
+    # the optimum's log T of the flat prior is not part of the gain
+    consts, value = F.maximum_a_posteriori(without, seed=i, priors=PRIORS)
+    bare, value_bare = F.maximum_a_posteriori({k: v for k, v in without.items() if k != "visits"}, seed=i,
+                                              priors=PRIORS)
+    assert g_without == pytest.approx(value - np.log(consts["t_visit_ns"]) - value_bare, abs=1e-9)
+
+
+def test_t_visit_round_trips_and_bad_visit_counts_are_rejected(planted, tmp_path):
+    _, result, cal = planted
+    path = tmp_path / "cal.json"
+    calfile.save(path, cal)
+    back = calfile.load(path)
+    assert back["constants"]["t_visit_ns"]["median"] == pytest.approx(result.constants["t_visit_ns"]["median"])
+    assert "t_visit_ns" in back["samples"]["columns"]
+    again = calfile.refit(back, seed=0, optional=ALL)
+    assert again["constants"]["t_visit_ns"]["median"] == pytest.approx(TRUTH["t_visit_ns"], rel=0.05)
+    assert calfile.refit(back, seed=0)["constants"].get("t_visit_ns") is None  # the default leaves it out
+    for value, message in ((-1, "whole number of cells"), (2.5, "whole number of cells"),
+                           (cal["measurements"][0]["steps"] + 1, "visits are part of the steps")):
+        bad = json.loads(json.dumps(cal))
+        bad["measurements"][0]["visits"] = value
+        with pytest.raises(ValueError, match=r"measurements\[0\]\.visits: .*" + message):
+            calfile.validate(bad)
+
+
+# -- predictions ----------------------------------------------------------------------------------------
+
+def test_predict_adds_t_visit_for_the_modelled_visits_and_searches_a_resolution_for_it():
+    plain = dict(t_setup_ns=80.0, t_step_ns=10.0, t_int_ns=1.2, t_sub_ns=60.0)
+    costly = dict(plain, t_visit_ns=40.0)
+    p0 = predict("scattered-compact", constants=plain, levels="1")
+    p1 = predict("scattered-compact", constants=costly, levels="1")
+    eff = {e["name"]: e for e in p1["effects"]}["occupied-cells"]
+    assert eff["used"] and eff["change"] > 0.02
+    assert "occupied-cells" not in {e["name"] for e in p0["effects"]}
+    q = p1["predicted"]
+    want = (80.0 + 10.0 * q["steps_per_ray"] + 1.2 * q["tests_per_ray"] + 40.0 * q["visits_per_ray"])
+    assert q["ns_per_ray"]["median"] == pytest.approx(want, rel=1e-9)
+    # the plan moves, to a resolution the model with T_visit prices lower than the plain one
+    res0, res1 = p0["levels"][0]["resolution"], p1["levels"][0]["resolution"]
+    assert res1 != res0
+    k = resolve_constants(constants=costly)
+    stats = Scene.builtin("scattered-compact").stats
+    terms = Terms(traversed_fraction=termination_fraction(stats)[0])
+
+    def model_cost(res):
+        _, steps, tests = predict_uniform(stats, res, 0.0, 1.0, 1.0, overlap="exact", terms=terms)
+        return k.cost(steps, tests, visits=visits_per_ray(stats, res, terms=terms))
+
+    assert model_cost(res1) < model_cost(res0)
+    assert k.has_visits and not resolve_constants(constants=plain).has_visits
+    assert k.cost(2.0, 3.0, visits=0.5) == pytest.approx(80.0 + 20.0 + 3.6 + 20.0)
