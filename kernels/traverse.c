@@ -61,6 +61,14 @@ static gc_status mail_open(const gc_grid *g, gc_mail *m, gc_mail **use, char *er
     return GC_OK;
 }
 
+/* The walk's masked DDA step (traverse_impl.h) on x86-64 with SSE2. */
+#if defined(__SSE2__) && defined(__x86_64__)
+#include <emmintrin.h>
+#define GC_MASKED_DDA 1
+#else
+#define GC_MASKED_DDA 0
+#endif
+
 #if defined(GC_HAVE_PACKED_WATERTIGHT)
 #define GC_WT_SIMD 2
 #else

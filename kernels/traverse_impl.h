@@ -63,16 +63,27 @@ GC_TW_ATTR static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, con
     }
     /* The walk picks the next axis without a branch: which axis a ray crosses
      * next is a coin toss for the branch predictor, and a mispredicted step
-     * would cost more than the step itself.  The axis is an index into small
-     * per-axis arrays (the boundary t, its increment, the index step and the
-     * cells left before the grid ends), so a step updates one entry instead of
-     * masking all three.  The ray and the best hit are local copies, so the
-     * compiler keeps them in registers instead of reloading them after every
-     * store of a hit. */
+     * would cost more than the step itself.  With SSE2 the three boundary t's
+     * stay in vector registers and a step adds each axis's increment under a
+     * mask (x if tx <= ty and tx <= tz, else y if ty <= tz, else z: ties go to
+     * the earlier axis); the integer side (the index step, the cells left
+     * before the grid ends) takes the same masks.  The chain one step hands
+     * to the next is then a compare, two logic operations and an add; an
+     * index into per-axis arrays in memory (the other build) runs each step
+     * through a store and a reload and a table lookup.  The ray and the best
+     * hit are local copies, so the compiler keeps them in registers instead
+     * of reloading them after every store of a hit. */
     const gc_ray ray = *r;
     double best_t = hit->t;
     int32_t best_prim = hit->prim;
+#if GC_MASKED_DDA
+    __m128d vtx = _mm_set_sd(t_next[0]), vty = _mm_set_sd(t_next[1]), vtz = _mm_set_sd(t_next[2]);
+    const __m128d vdx = _mm_set_sd(dt[0]), vdy = _mm_set_sd(dt[1]), vdz = _mm_set_sd(dt[2]);
+    const __m128d ones = _mm_castsi128_pd(_mm_set1_epi32(-1));
+    int64_t lx = left[0], ly = left[1], lz = left[2];
+#else
     double tn[3] = {t_next[0], t_next[1], t_next[2]};
+#endif
     int64_t idx = (int64_t)gc_cell_index(nd, c[0], c[1], c[2]);
     const int64_t first = (int64_t)nd->first_cell;
     const int64_t end = first + axis_stride[2] * (int64_t)nd->n[2];
@@ -85,22 +96,34 @@ GC_TW_ATTR static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, con
     gc_ray2 rayv;
     gc_ray2_prepare(&rayv, &ray);
 #endif
-    /* the axis whose boundary comes first: x if tx <= ty and tx <= tz, else y
-     * if ty <= tz, else z (ties go to the earlier axis), indexed by the three
-     * comparisons */
+#if !GC_MASKED_DDA
+    /* the axis whose boundary comes first, indexed by the three comparisons */
     static const uint8_t next_axis[8] = {2, 1, 2, 1, 2, 1, 0, 0};
+#endif
     double t_enter = ta;
     for (;;) {
+#if GC_MASKED_DDA
+        const __m128d mx = _mm_and_pd(_mm_cmple_sd(vtx, vty), _mm_cmple_sd(vtx, vtz));
+        const __m128d my = _mm_andnot_pd(mx, _mm_cmple_sd(vty, vtz));
+        const __m128d mz = _mm_andnot_pd(_mm_or_pd(mx, my), ones);
+        const double t_axis = _mm_cvtsd_f64(_mm_min_sd(_mm_min_sd(vtx, vty), vtz));
+        /* all ones or zero, per axis */
+        const int64_t ix = _mm_cvtsi128_si64(_mm_castpd_si128(mx));
+        const int64_t iy = _mm_cvtsi128_si64(_mm_castpd_si128(my));
+        const int64_t iz = _mm_cvtsi128_si64(_mm_castpd_si128(mz));
+        const int64_t next = idx + ((stride[0] & ix) | (stride[1] & iy) | (stride[2] & iz));
+#else
         const double tx = tn[0], ty = tn[1], tz = tn[2];
         double t_axis = tx < ty ? tx : ty;
         t_axis = t_axis < tz ? t_axis : tz;
+        const int a = next_axis[((tx <= ty) << 2) | ((tx <= tz) << 1) | (ty <= tz)];
+        const int64_t next = idx + stride[a];
+#endif
         const double t_exit = t_axis < tb ? t_axis : tb;
         const gc_cell cell = cells[idx];
 #if GC_TW_COUNT
         cnt->steps++;
 #endif
-        const int a = next_axis[((tx <= ty) << 2) | ((tx <= tz) << 1) | (ty <= tz)];
-        const int64_t next = idx + stride[a];
         /* The next cell along the ray, and the first of its triangles, start
          * loading while this cell is tested: a cell's triangles lie at a place
          * in memory nothing else predicts, and waiting for them made an
@@ -205,10 +228,23 @@ GC_TW_ATTR static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, con
             break;
         }
         idx = next;
+#if GC_MASKED_DDA
+        /* adding +0 leaves the other axes' t as they were */
+        vtx = _mm_add_sd(vtx, _mm_and_pd(mx, vdx));
+        vty = _mm_add_sd(vty, _mm_and_pd(my, vdy));
+        vtz = _mm_add_sd(vtz, _mm_and_pd(mz, vdz));
+        lx += ix;
+        ly += iy;
+        lz += iz;
+        if ((lx == 0) | (ly == 0) | (lz == 0)) {
+            break;
+        }
+#else
         tn[a] += dt[a];
         if (--left[a] == 0) {
             break;
         }
+#endif
         t_enter = t_axis;
     }
     hit->t = best_t;
