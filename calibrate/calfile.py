@@ -92,12 +92,10 @@ MAX_STORED_SAMPLES = 2000
 COUNT_FIELDS = ("rays", "steps", "tests", "subgrids")
 #: Counts a measurement may carry, each fitted (with its constant) when the timings call for it.
 OPTIONAL_COUNT_FIELDS = ("misses", "visits")
-#: The optional counts a calibration's fit takes by default.  ``calibrate run`` records every
-#: configuration's occupied cells entered (``visits``) but does not fit T_visit yet: with it
-#: the in-context fit cross-validates better (4.1% against 5.3% on isotropic rays), but
-#: ``compare``'s penalties came out worse in two runs of two (docs/calibration.md,
-#: "Occupied cells"); pass ``optional=OPTIONAL_COUNT_FIELDS`` to fit it.
-DEFAULT_OPTIONAL_COUNTS = ("misses",)
+#: The optional counts a calibration's fit takes by default: both, each fitted when the timings
+#: call for it (:func:`fit_in_context`).  ``optional=("misses",)`` leaves T_visit out, as the
+#: fit did before the kernels' masked DDA step (docs/calibration.md, "Occupied cells").
+DEFAULT_OPTIONAL_COUNTS = ("misses", "visits")
 
 
 # ---------------------------------------------------------------------------

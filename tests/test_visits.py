@@ -196,10 +196,12 @@ def _design(recs):
     return calfile.design_from_measurements(recs, "in_context", optional=ALL)
 
 
-def test_a_calibration_leaves_visits_out_unless_asked():
+def test_a_calibration_takes_visits_unless_told_to_leave_them_out():
     recs = _records(0)
-    assert "visits" not in calfile.design_from_measurements(recs, "in_context")
-    assert "visits" in _design(recs)
+    assert "visits" in calfile.design_from_measurements(recs, "in_context")
+    assert "visits" not in calfile.design_from_measurements(recs, "in_context", optional=("misses",))
+    del recs[3]["visits"]  # one record without them: none are taken
+    assert "visits" not in _design(recs)
     with pytest.raises(ValueError, match="unknown optional count 'packs'"):
         calfile.design_from_measurements(recs, "in_context", optional=("packs",))
 
@@ -253,7 +255,7 @@ def test_t_visit_round_trips_and_bad_visit_counts_are_rejected(planted, tmp_path
     assert "t_visit_ns" in back["samples"]["columns"]
     again = calfile.refit(back, seed=0, optional=ALL)
     assert again["constants"]["t_visit_ns"]["median"] == pytest.approx(TRUTH["t_visit_ns"], rel=0.05)
-    assert calfile.refit(back, seed=0)["constants"].get("t_visit_ns") is None  # the default leaves it out
+    assert calfile.refit(back, seed=0, optional=("misses",))["constants"].get("t_visit_ns") is None
     for value, message in ((-1, "whole number of cells"), (2.5, "whole number of cells"),
                            (cal["measurements"][0]["steps"] + 1, "visits are part of the steps")):
         bad = json.loads(json.dumps(cal))
