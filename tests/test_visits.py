@@ -291,3 +291,22 @@ def test_predict_adds_t_visit_for_the_modelled_visits_and_searches_a_resolution_
     assert model_cost(res1) < model_cost(res0)
     assert k.has_visits and not resolve_constants(constants=plain).has_visits
     assert k.cost(2.0, 3.0, visits=0.5) == pytest.approx(80.0 + 20.0 + 3.6 + 20.0)
+
+
+def test_the_header_carries_t_visit_and_compiles(planted, tmp_path):
+    import subprocess
+
+    from calibrate.export import export
+
+    _, result, cal = planted
+    path = tmp_path / "cal.json"
+    calfile.save(path, cal)
+    header = tmp_path / "grid_tuning.h"
+    export(header, calibration=path, rays=None)
+    text = header.read_text()
+    assert f"#define GRIDCAL_T_VISIT_NS {result.constants['t_visit_ns']['median']!r}" in text
+    prog = tmp_path / "use.c"
+    prog.write_text('#include "grid_tuning.h"\nint main(void) { return GRIDCAL_T_VISIT_NS > 0.0 ? 0 : 1; }\n')
+    subprocess.run(["cc", "-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", f"-I{tmp_path}", str(prog),
+                    "-o", str(tmp_path / "use"), "-lm"], check=True)
+    assert subprocess.run([str(tmp_path / "use")]).returncode == 0
