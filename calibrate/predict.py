@@ -905,7 +905,7 @@ def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analyt
     ``fidelity``, ``units`` ("ns" or "T_step"), ``levels`` (top first, each with
     ``resolution`` [nx, ny, nz], ``grids``, ``cells``, ``references``), ``memory_bytes``,
     ``predicted`` (``ns_per_ray`` {median, ci95} or None in ratio mode, ``cost_t_step``
-    in ratio mode, ``steps_per_ray``, ``tests_per_ray``, ``subgrids_per_ray``),
+    in ratio mode, ``steps_per_ray``, ``tests_per_ray``, ``subgrids_per_ray``, ``visits_per_ray``),
     ``effects`` (list of {name, used, change, reason}), ``baselines`` (name ->
     top-level [nx, ny, nz]), ``baselines_detail``, ``notes``, ``timing_s``.
     """
