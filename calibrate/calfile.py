@@ -560,7 +560,7 @@ def design_from_measurements(
     records marked ``held_back`` (kept out of the fit to test its predictions)
     unless ``include_held_back``.
     optional : the optional counts (of OPTIONAL_COUNT_FIELDS) to take, each when every
-        chosen record has it; by default ``misses`` alone (DEFAULT_OPTIONAL_COUNTS).
+        chosen record has it; by default both (DEFAULT_OPTIONAL_COUNTS).
     Returns {rays, steps, tests, subgrids: (J,) float arrays, times_ns: J lists}, and
     ``misses`` (the memory effect's count) and ``visits`` (occupied cells entered) as
     ``optional`` says.
