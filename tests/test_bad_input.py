@@ -137,6 +137,10 @@ def fixture_files() -> dict[str, bytes]:
         # a fit per ray set whose camera entry lost its posterior samples
         "bad_by_rays.json": json.dumps({**_calibration(), "by_rays": {"camera": {
             k: v for k, v in _calibration().items() if k in ("constants", "diagnostics")}}}).encode(),
+        # a measurement entering more occupied cells than it stepped through
+        "bad_visits.json": json.dumps({**_calibration(), "measurements": [
+            dict(m, visits=m["steps"] + 1) if i == 2 else m
+            for i, m in enumerate(_calibration()["measurements"])]}).encode(),
         # existing outputs a failed write must leave alone
         "out.json": EXISTING,
         "locked.json": EXISTING,  # made read-only
@@ -341,6 +345,8 @@ CASES: list[Case] = [
     cli(CALFILE, "calibration whose posterior did not converge", "show unconverged.json",
         "the posterior did not converge"),
     cli(CALFILE, "calibration path is a directory", "show adir", "is a directory, not a calibration file"),
+    cli(CALFILE, "more occupied cells entered than cells stepped", "fit bad_visits.json",
+        "measurements[2].visits: 16385 occupied cells entered but only 16384 cells stepped"),
     cli(CALFILE, "a ray set's fit without posterior samples", "predict --calibration bad_by_rays.json --rays camera",
         "by_rays.camera: missing key 'samples'"),
     cli(CALFILE, "calibration from a future schema", "export --calibration future.json",
