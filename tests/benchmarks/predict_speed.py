@@ -53,11 +53,20 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--skip", nargs="*", default=[], help="case names to skip (e.g. simulated)")
     ap.add_argument("--vertex-order", choices=("lattice", "first-use"), default="lattice")
+    ap.add_argument("--calibration", default=None,
+                    help="predict with this calibration's isotropic constants (with T_mem or T_visit the "
+                         "analytic plan also searches the resolution) instead of --ratio 1")
     args = ap.parse_args()
+    src = dict(ratio=1.0)
+    if args.calibration:
+        from calibrate.predict import constants_from_args
+
+        src = constants_from_args(argparse.Namespace(calibration=args.calibration, ratio=None), rays="isotropic")
     v, f = sphere_mesh(args.triangles)
     if args.vertex_order == "first-use":
         v, f = first_use_order(v, f)
-    print(f"mesh: displaced sphere, {len(f):,} triangles, {len(v):,} vertices, vertices in {args.vertex_order} order")
+    print(f"mesh: displaced sphere, {len(f):,} triangles, {len(v):,} vertices, vertices in {args.vertex_order} order; "
+          f"constants: {args.calibration or 'ratio 1'}")
     print(f"{'case':32s} {'min ms':>10s} {'median ms':>10s} {'cpu ms':>10s}")
     for label, fidelity, levels in CASES:
         if any(s in label for s in args.skip):
@@ -73,7 +82,7 @@ def main() -> None:
             else:
                 if levels == "1 thread":  # the statistics the prediction reads, computed in one thread
                     scene._stats = compiled_scene_stats(scene.vertices, scene.faces, threads=1)
-                predict(scene, fidelity=fidelity, levels="1" if levels == "1 thread" else levels, ratio=1.0)
+                predict(scene, fidelity=fidelity, levels="1" if levels == "1 thread" else levels, **src)
             times.append(time.perf_counter() - t0)
             cpu.append(time.process_time() - c0)
         print(f"{label:32s} {1e3 * min(times):10.1f} {1e3 * statistics.median(times):10.1f} "
