@@ -628,30 +628,28 @@ class Grid:
         o, d = _check_rays(origins, directions)
         return _kernels.intersect(self._capsule, o, d)
 
-    def count(self, origins, directions, hits: bool = False):
+    def count(self, origins, directions, hits: bool = False, visits: bool = False):
         """Per-ray work from the instrumented twin.
 
         Returns ``(steps, tests, subgrids)``, each (n,) uint32: cells visited at
         every level, triangle tests, subgrids entered.  With ``hits=True``,
-        returns ``(t, prim, steps, tests, subgrids)``: the same hits as
-        :meth:`intersect`.
+        ``(t, prim)`` come first: the same hits as :meth:`intersect`.  With
+        ``visits=True``, the occupied cells entered come last: the cells holding
+        triangles that each ray's walk tested, at every level (a cell holding a
+        subgrid is not one; its own cells are), part of ``steps``.  One walk
+        counts them all.
         """
         hits = _flag(hits, "hits")
+        visits = _flag(visits, "visits")
         o, d = _check_rays(origins, directions)
-        t, prim, steps, tests, subgrids = _kernels.count(self._capsule, o, d)
-        if hits:
-            return t, prim, steps, tests, subgrids
-        return steps, tests, subgrids
+        t, prim, steps, tests, subgrids, n_visits = _kernels.count(self._capsule, o, d)
+        out = (t, prim) if hits else ()
+        out += (steps, tests, subgrids)
+        return out + (n_visits,) if visits else out
 
     def count_visits(self, origins, directions) -> np.ndarray:
-        """Occupied cells entered per ray, from the instrumented twin: (n,) uint32.
-
-        The cells holding triangles that each ray's walk tested, at every level (a
-        cell holding a subgrid is not one; its own cells are). Part of ``steps``
-        (:meth:`count`), on the same walk.
-        """
-        o, d = _check_rays(origins, directions)
-        return _kernels.count_visits(self._capsule, o, d)
+        """Occupied cells entered per ray, (n,) uint32: :meth:`count`'s last result with ``visits=True``."""
+        return self.count(origins, directions, visits=True)[-1]
 
     def bench(self, origins, directions, loops: int = 1) -> tuple[int, float]:
         """Trace the batch ``loops`` times in C; returns (elapsed ns, checksum)."""

@@ -737,9 +737,8 @@ def fit_count_curves(scales, steps, tests):
 
 def _count(grid, o, d):
     """Per-ray means from the instrumented twin: (steps, tests, subgrids, occupied cells entered, grid info)."""
-    steps, tests, sub = grid.count(o, d)
-    return float(steps.mean()), float(tests.mean()), float(sub.mean()), float(grid.count_visits(o, d).mean()), \
-        grid.info
+    steps, tests, sub, visits = grid.count(o, d, visits=True)
+    return float(steps.mean()), float(tests.mean()), float(sub.mean()), float(visits.mean()), grid.info
 
 
 def _simulated_uniform(scene, stats, k: Constants, rays, mailbox):

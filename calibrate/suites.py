@@ -100,8 +100,7 @@ def _config(name, kind, suite, scene_name, res_label, intersector, grid: Grid, o
             copies=()) -> Config:
     """The configuration of ``grid`` on rays (o, d); ``copies``: more builds of the same grid,
     timed in turn with it (:class:`calibrate.protocol.Copies`)."""
-    steps, tests, subgrids = grid.count(o, d)
-    visits = grid.count_visits(o, d)
+    steps, tests, subgrids, visits = grid.count(o, d, visits=True)
     runs = [g.timed_batch(o, d, clock=TIMING_CLOCK) for g in (grid, *copies)]
     return Config(name=name, kind=kind, suite=suite, scene=scene_name, resolution=res_label,
                   intersector=intersector, rays=int(o.shape[0]), steps=int(steps.sum(dtype=np.int64)),

@@ -257,10 +257,10 @@ def _as_grid(scene, spec_or_grid, mailbox=False):
 
 
 def _counts(grid: Grid, origins, directions) -> dict:
-    steps, tests, subgrids = grid.count(origins, directions)
+    steps, tests, subgrids, visits = grid.count(origins, directions, visits=True)
     info = grid.info
     return dict(steps=float(steps.mean()), tests=float(tests.mean()), subgrids=float(subgrids.mean()),
-                visits=float(grid.count_visits(origins, directions).mean()),
+                visits=float(visits.mean()),
                 cells=int(info["n_cells"]), references=int(info["n_refs"]),
                 memory_bytes=int(info["memory_bytes"]))
 

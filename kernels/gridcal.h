@@ -151,17 +151,14 @@ gc_status gc_intersect(const gc_grid *grid, int64_t n, const double *origins,
                        const double *directions, double *t, int32_t *prim, char *err);
 
 /* The instrumented twin: same hits, plus per ray the cells visited (all levels),
- * the triangle tests performed and the subgrids entered.  Any of the count
- * arrays may be NULL. */
+ * the triangle tests performed, the subgrids entered and the occupied cells
+ * entered (the cells holding triangles that the walk tested, at every level; a
+ * cell holding a subgrid is not one of them, its own cells are).  Any of the
+ * count arrays may be NULL. */
 gc_status gc_count(const gc_grid *grid, int64_t n, const double *origins,
                    const double *directions, double *t, int32_t *prim,
-                   uint32_t *steps, uint32_t *tests, uint32_t *subgrids, char *err);
-
-/* The instrumented twin's count of occupied cells entered, per ray: the cells
- * holding triangles that the walk tested (at every level; a cell holding a
- * subgrid is not one of them, its own cells are).  The same walk as gc_count. */
-gc_status gc_count_visits(const gc_grid *grid, int64_t n, const double *origins,
-                          const double *directions, uint32_t *visits, char *err);
+                   uint32_t *steps, uint32_t *tests, uint32_t *subgrids, uint32_t *visits,
+                   char *err);
 
 /* Timed batch: trace the n rays `loops` times with the timed twin and return the
  * elapsed wall time (CLOCK_MONOTONIC, ns) around all loops and a checksum of every

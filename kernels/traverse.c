@@ -267,9 +267,9 @@ gc_status gc_intersect(const gc_grid *g, int64_t n, const double *origins, const
     return GC_OK;
 }
 
-static gc_status count_rays(const gc_grid *g, int64_t n, const double *origins, const double *directions,
-                            double *t, int32_t *prim, uint32_t *steps, uint32_t *tests, uint32_t *subgrids,
-                            uint32_t *visits, char *err)
+gc_status gc_count(const gc_grid *g, int64_t n, const double *origins, const double *directions,
+                   double *t, int32_t *prim, uint32_t *steps, uint32_t *tests, uint32_t *subgrids,
+                   uint32_t *visits, char *err)
 {
     gc_status st = gc_check_rays(n, origins, directions, err);
     if (st != GC_OK) {
@@ -311,19 +311,6 @@ static gc_status count_rays(const gc_grid *g, int64_t n, const double *origins, 
     }
     free(m.stamp);
     return GC_OK;
-}
-
-gc_status gc_count(const gc_grid *g, int64_t n, const double *origins, const double *directions,
-                   double *t, int32_t *prim, uint32_t *steps, uint32_t *tests, uint32_t *subgrids,
-                   char *err)
-{
-    return count_rays(g, n, origins, directions, t, prim, steps, tests, subgrids, NULL, err);
-}
-
-gc_status gc_count_visits(const gc_grid *g, int64_t n, const double *origins, const double *directions,
-                          uint32_t *visits, char *err)
-{
-    return count_rays(g, n, origins, directions, NULL, NULL, NULL, NULL, NULL, visits, err);
 }
 
 static int64_t now_ns(void)

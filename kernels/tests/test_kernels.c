@@ -172,7 +172,7 @@ static int64_t compare_with_brute(const mesh_buf *mb, const gc_build_params *p, 
             *pc = malloc((size_t)n * sizeof(int32_t));
     uint32_t *steps = malloc((size_t)n * sizeof(uint32_t)), *tests = malloc((size_t)n * sizeof(uint32_t)),
              *subs = malloc((size_t)n * sizeof(uint32_t));
-    CHECK(gc_count(g, n, o, d, tc, pc, steps, tests, subs, err) == GC_OK, "%s: count: %s", label, err);
+    CHECK(gc_count(g, n, o, d, tc, pc, steps, tests, subs, NULL, err) == GC_OK, "%s: count: %s", label, err);
     /* the timed twin on every sign stage this host runs, each equal to the
      * instrumented twin (SSE2) ray for ray; the host's best runs last and is
      * compared with brute force below */
@@ -429,7 +429,7 @@ static void test_refusals(void)
     double o[3] = {-1, 0.5, 0.5}, d[3] = {1, 0, 0}, t;
     int32_t pr;
     uint32_t steps;
-    CHECK(gc_count(g, 1, o, d, &t, &pr, &steps, NULL, NULL, err) == GC_OK && pr == -1 && steps == 4,
+    CHECK(gc_count(g, 1, o, d, &t, &pr, &steps, NULL, NULL, NULL, err) == GC_OK && pr == -1 && steps == 4,
           "empty grid: ray along x should visit 4 cells, visited %u", steps);
     d[0] = 0;
     CHECK(gc_intersect(g, 1, o, d, &t, &pr, err) == GC_ERR_ARGUMENT, "zero direction accepted");
@@ -705,8 +705,8 @@ static void test_visits_and_positions(void)
     }
     const double o[2][3] = {{-1.0, 0.8, 0.8}, {-1.0, 0.15, 0.15}}, d[2][3] = {{1, 0, 0}, {1, 0, 0}};
     uint32_t steps[2] = {0, 0}, visits[2] = {9, 9};
-    CHECK(gc_count(g, 2, &o[0][0], &d[0][0], NULL, NULL, steps, NULL, NULL, err) == GC_OK, "count: %s", err);
-    CHECK(gc_count_visits(g, 2, &o[0][0], &d[0][0], visits, err) == GC_OK, "count_visits: %s", err);
+    CHECK(gc_count(g, 2, &o[0][0], &d[0][0], NULL, NULL, steps, NULL, NULL, visits, err) == GC_OK, "count: %s",
+          err);
     CHECK(steps[0] == 4 && visits[0] == 2, "a missing ray: %u steps and %u visits, want 4 and 2", steps[0],
           visits[0]);
     CHECK(steps[1] == 1 && visits[1] == 1, "a hitting ray: %u steps and %u visits, want 1 and 1", steps[1],
