@@ -75,3 +75,23 @@ def planted_counts(rng: np.random.Generator, j: int, rays: int) -> dict:
     tests_pr = np.exp(rng.uniform(np.log(3.0), np.log(100.0)))
     sub_pr = rng.uniform(1.0, 13.0) if j % 4 == 0 else 0.0
     return dict(steps=int(rays * steps_pr), tests=int(rays * tests_pr), subgrids=int(rays * sub_pr))
+
+
+def exported_header(cal: dict, tmp_path: Path, condition: str) -> str:
+    """Export ``cal``'s header into ``tmp_path``, check that a C99 program including it
+    (-Wall -Wextra -Werror -pedantic) finds ``condition`` true, and return the header's text."""
+    import subprocess
+
+    from calibrate import calfile
+    from calibrate.export import export
+
+    path = tmp_path / "cal.json"
+    calfile.save(path, cal)
+    header = tmp_path / "grid_tuning.h"
+    export(header, calibration=path, rays=None)
+    prog = tmp_path / "use.c"
+    prog.write_text(f'#include "grid_tuning.h"\nint main(void) {{ return ({condition}) ? 0 : 1; }}\n')
+    subprocess.run(["cc", "-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", f"-I{tmp_path}", str(prog),
+                    "-o", str(tmp_path / "use"), "-lm"], check=True)
+    assert subprocess.run([str(tmp_path / "use")]).returncode == 0
+    return header.read_text()

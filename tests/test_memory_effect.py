@@ -13,17 +13,15 @@ the effect matters.
 from __future__ import annotations
 
 import json
-import subprocess
 
 import numpy as np
 import pytest
 
 from calibrate import calfile, host
 from calibrate import fit as F
-from calibrate.export import export
 from calibrate._grid import Scene
 from calibrate.predict import _uniform_counts, predict, resolve_constants, scene_statistics
-from conftest import planted_counts
+from conftest import exported_header, planted_counts
 from models.effects import select_effects
 from models.memory import LINE_BYTES, STEP_LINES, TEST_LINES, lines_beyond_cache, miss_fraction
 from models.uncertainty import discrete_posterior_optimum
@@ -290,18 +288,8 @@ def test_t_mem_without_a_cache_size_is_an_error():
 
 def test_the_header_carries_t_mem_and_the_cache(planted, tmp_path):
     _, _, cal = planted
-    path = tmp_path / "cal.json"
-    calfile.save(path, cal)
-    header = tmp_path / "grid_tuning.h"
-    export(header, calibration=path, rays=None)
-    text = header.read_text()
+    text = exported_header(cal, tmp_path, "GRIDCAL_T_MEM_NS > 0.0 && GRIDCAL_CACHE_BYTES > 0.0")
     assert "#define GRIDCAL_T_MEM_NS" in text and f"#define GRIDCAL_CACHE_BYTES {CACHE}.0" in text
-    prog = tmp_path / "use.c"
-    prog.write_text('#include "grid_tuning.h"\nint main(void) { return GRIDCAL_T_MEM_NS > 0.0 && '
-                    'GRIDCAL_CACHE_BYTES > 0.0 ? 0 : 1; }\n')
-    subprocess.run(["cc", "-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", f"-I{tmp_path}", str(prog),
-                    "-o", str(tmp_path / "use"), "-lm"], check=True)
-    assert subprocess.run([str(tmp_path / "use")]).returncode == 0
 
 
 def test_discrete_posterior_optimum_recovers_a_planted_split():

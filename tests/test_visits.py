@@ -25,7 +25,7 @@ from calibrate.predict import predict, resolve_constants
 from calibrate.rays import isotropic
 from calibrate.scenes import scattered_compact
 from calibrate.suites import empty_grid, resolution_for_cells
-from conftest import planted_counts
+from conftest import exported_header, planted_counts
 from models.effects import termination_fraction
 from models.general import (VISITS_SURFACE, Terms, occupied_cells, predict_uniform, terminated_visits,
                             visits_per_ray)
@@ -85,8 +85,8 @@ def test_the_kernel_counts_the_occupied_cells_each_ray_enters_before_its_hit(i):
     scene = _scattered(40 + 20 * i, seed=i)
     grid = Grid.uniform(scene, (5 + i, 6, 7 - i))
     o, d = isotropic(scene.box_lo, scene.box_hi, 400, seed=i)
-    t, _, steps, _, _ = grid.count(o, d, hits=True)
-    visits = grid.count_visits(o, d)
+    t, _, steps, _, _, visits = grid.count(o, d, hits=True, visits=True)
+    np.testing.assert_array_equal(grid.count_visits(o, d), visits)
     occupied = grid.top_counts() > 0
     assert 0 < occupied.sum() < occupied.size
     want, clear = _brute_visits(grid, occupied, o, d, t)
@@ -103,8 +103,7 @@ def test_an_empty_grid_has_no_visits_and_a_nested_grid_counts_only_cells_that_ho
     scene = _scattered(200, seed=5)
     o, d = isotropic(scene.box_lo, scene.box_hi, 512, seed=1)
     nested = Grid.nested(scene, levels=2)
-    steps, tests, subgrids = nested.count(o, d)
-    visits = nested.count_visits(o, d)
+    steps, tests, subgrids, visits = nested.count(o, d, visits=True)
     # a subgrid's own cell is not an occupied cell: every cell entered is a top cell, a subgrid
     # cell that holds triangles, or an empty one
     assert np.all(visits <= steps - subgrids) and visits.sum() > 0
@@ -294,19 +293,6 @@ def test_predict_adds_t_visit_for_the_modelled_visits_and_searches_a_resolution_
 
 
 def test_the_header_carries_t_visit_and_compiles(planted, tmp_path):
-    import subprocess
-
-    from calibrate.export import export
-
     _, result, cal = planted
-    path = tmp_path / "cal.json"
-    calfile.save(path, cal)
-    header = tmp_path / "grid_tuning.h"
-    export(header, calibration=path, rays=None)
-    text = header.read_text()
+    text = exported_header(cal, tmp_path, "GRIDCAL_T_VISIT_NS > 0.0")
     assert f"#define GRIDCAL_T_VISIT_NS {result.constants['t_visit_ns']['median']!r}" in text
-    prog = tmp_path / "use.c"
-    prog.write_text('#include "grid_tuning.h"\nint main(void) { return GRIDCAL_T_VISIT_NS > 0.0 ? 0 : 1; }\n')
-    subprocess.run(["cc", "-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", f"-I{tmp_path}", str(prog),
-                    "-o", str(tmp_path / "use"), "-lm"], check=True)
-    assert subprocess.run([str(tmp_path / "use")]).returncode == 0
