@@ -34,6 +34,7 @@ every cost is then *in units of T_step*; the result's ``predicted.ns_per_ray`` i
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 import weakref
@@ -44,7 +45,8 @@ import numpy as np
 from models import baselines as _baselines
 from models.closed_forms import MAX_CELLS_PER_AXIS, MAX_TOTAL_CELLS, cells_to_resolution, l_level_cells
 from models.effects import EFFECT_TOLERANCE, select_effects, termination_fraction
-from models.general import Terms, expected_refs, predict_uniform, steps_per_ray, terminated_visits, visits_per_ray
+from models.general import (Terms, cell_fraction, expected_refs, predict_uniform, steps_per_ray, terminated_visits,
+                            visits_per_ray)
 from models.memory import lines_beyond_cache
 from models.nested import MAX_LEVELS, TooManyPairs, clustering_change, nested_counts
 from models.portable import paper_k, paper_level_cells
@@ -133,6 +135,8 @@ SIM_MAX_CELLS = 2 ** 24
 #: makes the memory effect or the occupied cells matter (2^(j/8), j = -16..16: 1/4x to 4x per
 #: axis, 64x in cells each way).
 SEARCH_SCALES = tuple(2.0 ** (j / 8.0) for j in range(-16, 17))
+#: Axes the search scales to fewer cells than this get both their floor and ceiling.
+THIN_AXIS_CELLS = 4
 
 _STATS_CACHE: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 
@@ -540,8 +544,7 @@ def analytic_uniform_plan(stats, k: Constants, mailbox):
     candidates = None
     if k.has_memory or k.has_visits:
         cands = {}
-        for sc in SEARCH_SCALES:
-            r = _scaled(res, sc)
+        for r in (q for sc in SEARCH_SCALES for q in _scaled_with_thin_axes(res, sc)):
             if r in cands or max(r) > MAX_CELLS_PER_AXIS or r[0] * r[1] * r[2] > MAX_TOTAL_CELLS:
                 continue
             c = _uniform_counts(stats, r, k, sel.terms)
@@ -640,12 +643,13 @@ def _analytic_nested(scene, stats, k: Constants, L, mailbox):
     frac, _ = termination_fraction(stats)
     ns0 = k.cost(counts.steps, counts.tests, counts.subgrids, _nested_memory_bytes(counts), counts.visits)
     sel = select_effects(stats, k.t_setup, k.t_step, k.t_int, mailbox=mailbox, termination=True, overlap="exact",
-                         levels=L, subgrid_ns=k.t_sub * counts.subgrids * frac,
+                         levels=L, subgrid_ns=k.t_sub * counts.subgrids * cell_fraction(frac, counts.steps),
                          clustering_change=clustering_change(counts, stats, k.t_step, k.t_int, ns0))
     f = sel.terms.traversed_fraction
-    plan = dict(levels=_nested_levels(counts), steps=f * counts.steps, tests=f * counts.tests,
-                subgrids=f * counts.subgrids, memory_bytes=_nested_memory_bytes(counts),
-                visits=terminated_visits(counts.visits, stats.separate_fraction, f),
+    g = cell_fraction(f, counts.steps)
+    plan = dict(levels=_nested_levels(counts), steps=g * counts.steps, tests=g * counts.tests,
+                subgrids=g * counts.subgrids, memory_bytes=_nested_memory_bytes(counts),
+                visits=terminated_visits(counts.visits, stats.separate_fraction, g),
                 terms=sel.terms, counts=counts, overlap=overlap)
     effects = _effect_dicts(sel)
     if k.has_memory:
@@ -654,7 +658,8 @@ def _analytic_nested(scene, stats, k: Constants, L, mailbox):
                                       plan["visits"]))
     effects.append(dict(name="nested-model", used=True, change=0.0,
                         reason=(f"{L}-level Crofton composition over the built structure ({how}); "
-                                f"termination scales its counts by {100 * f:.0f}%")))
+                                f"termination scales its counts by {100 * g:.0f}% (rays cover {100 * f:.0f}% "
+                                "of the distance, their first cell whole)")))
     return plan, effects
 
 
@@ -717,6 +722,15 @@ def _rays(scene, kind, n, seed):
 
 def _scaled(res, s):
     return tuple(max(1, int(round(x * s))) for x in res)
+
+
+def _scaled_with_thin_axes(res, s):
+    """:func:`_scaled`, and where an axis scales to fewer than THIN_AXIS_CELLS cells, its floor and
+    ceiling each (a slab 1.4 cells deep is tried 1 and 2 deep: rounding alone would skip one)."""
+    base = _scaled(res, s)
+    options = [sorted({max(1, math.floor(x * s)), max(1, math.ceil(x * s))}) if x * s < THIN_AXIS_CELLS else [b]
+               for x, b in zip(res, base)]
+    return [base] + [r for r in itertools.product(*options) if r != base]
 
 
 def fit_count_curves(scales, steps, tests):
@@ -967,9 +981,10 @@ def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analyt
         predicted["model_cost_per_ray"] = k.cost(m_steps, m_tests, 0.0, plan_bytes,
                                                  visits_per_ray(stats, res1, terms=terms))
     elif "counts" in plan:
-        c, f = plan["counts"], terms.traversed_fraction
-        predicted["model_cost_per_ray"] = k.cost(f * c.steps, f * c.tests, f * c.subgrids, plan_bytes,
-                                                 terminated_visits(c.visits, stats.separate_fraction, f))
+        c = plan["counts"]
+        g = cell_fraction(terms.traversed_fraction, c.steps)
+        predicted["model_cost_per_ray"] = k.cost(g * c.steps, g * c.tests, g * c.subgrids, plan_bytes,
+                                                 terminated_visits(c.visits, stats.separate_fraction, g))
     else:
         predicted["model_cost_per_ray"] = None
     base, base_detail = _baseline_table(stats, k, terms)

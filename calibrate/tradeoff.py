@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from models.effects import select_effects
-from models.general import Terms, cost_cubic, cubic_coefficients, solve_cell_cubic
+from models.general import Terms, cost_cubic, optimal_cell_size
 from models.uncertainty import posterior_optimum, summarise
 
 from . import calfile, suites
@@ -114,9 +114,8 @@ def expected_penalty(stats, t_setup, t_step, t_int, terms: Terms | None = None) 
 
 
 def _optimal_h(stats, terms: Terms, t_step, t_int) -> float:
-    a, b, c = cubic_coefficients(stats, t_int / t_step, mailbox=terms.mailbox, overlap="exact", edge=terms.edge,
-                                 area=terms.area)
-    return float(solve_cell_cubic(a, b, c))
+    return float(optimal_cell_size(stats, t_step, t_int, mailbox=terms.mailbox, overlap="exact", edge=terms.edge,
+                                   area=terms.area, traversed_fraction=terms.traversed_fraction))
 
 
 def penalty_against(stats, terms: Terms, chosen: tuple, truth: tuple) -> float:

@@ -84,8 +84,9 @@ class Terms:
     edge : the E1 / perimeter terms (triangles spanning cells along their extent).
     area : the E2 / 2A / bbox-area terms (large triangles).
     mailbox : tests counted once per ray per triangle.
-    traversed_fraction : fraction (0, 1] of the no-termination steps and tests a ray
-        performs (1.0 = rays never stop; :func:`models.effects.termination_fraction`).
+    traversed_fraction : fraction (0, 1] of its no-termination *distance* a ray covers
+        (1.0 = rays never stop; :func:`models.effects.termination_fraction`); the counts
+        scale by :func:`cell_fraction` of it (a ray enters its first cell whatever it hits).
     """
 
     edge: bool = True
@@ -193,6 +194,25 @@ def terminated_visits(visits, separate_fraction, traversed_fraction):
     return out if out.ndim else float(out)
 
 
+def cell_fraction(traversed_fraction, steps, xp=np):
+    """Fraction of a ray's no-termination cells it enters when it stops at its first hit.
+
+    ``traversed_fraction`` ``f`` is the fraction of the *distance* a ray covers
+    (:func:`models.effects.termination_fraction`); ``steps`` ``S0`` the cells it enters
+    without termination, ``1 + X`` with X the cell boundaries its chord crosses.  A ray
+    enters its first cell whatever it hits, then crosses ``f X`` boundaries on average,
+    so it enters ``1 + f (S0 - 1)`` cells, the fraction ``f + (1 - f) / S0`` of S0.  Its
+    tests and occupied cells are those of the cells it enters: a ray that stops in a cell
+    has tested every triangle of it (the tests per cell entered are taken as the
+    no-termination average, ``T0 / S0``).  On a grid one or two cells across the
+    distance alone would count a small part of the first cell's tests (the CAD tray,
+    docs/compare.md, "Rays stop at the end of a cell").  ``S0`` is clipped at 1
+    (broadcasts; ``xp`` may be ``jax.numpy``).  ``f = 1`` (rays never stop) gives 1.
+    """
+    f = traversed_fraction
+    return f + (1.0 - f) / xp.maximum(steps, 1.0)
+
+
 def visits_per_ray(stats: SceneStats, resolution, *, terms: Terms | None = None) -> float:
     """Expected occupied cells a ray enters, with termination as ``terms`` says.
 
@@ -207,7 +227,8 @@ def visits_per_ray(stats: SceneStats, resolution, *, terms: Terms | None = None)
     c = cell_sizes(stats.extent, resolution)
     s_c = 2.0 * (c[0] * c[1] + c[1] * c[2] + c[2] * c[0])
     v = occupied_cells(stats, resolution) * s_c / stats.surface
-    return terminated_visits(v, stats.separate_fraction, terms.traversed_fraction)
+    g = cell_fraction(terms.traversed_fraction, steps_per_ray(stats.extent, resolution))
+    return terminated_visits(v, stats.separate_fraction, g)
 
 
 def triangle_tests_per_ray(stats: SceneStats, resolution, *, mailbox=False, overlap="exact",
@@ -262,17 +283,40 @@ def predict_uniform(stats: SceneStats, resolution, t_setup, t_step, t_int, mailb
     for name, t in (("t_setup", t_setup), ("t_step", t_step), ("t_int", t_int)):
         if not np.isfinite(t) or t < 0:
             raise ValueError(f"{name} must be finite and >= 0, got {t!r}")
-    steps = f * steps_per_ray(stats.extent, resolution)
-    tests = f * triangle_tests_per_ray(stats, resolution, mailbox=terms.mailbox, overlap=overlap,
-                              edge=terms.edge, area=terms.area)
+    steps0 = steps_per_ray(stats.extent, resolution)
+    g = cell_fraction(f, steps0)
+    steps = g * steps0
+    tests = g * triangle_tests_per_ray(stats, resolution, mailbox=terms.mailbox, overlap=overlap,
+                                       edge=terms.edge, area=terms.area)
     return float(t_setup + t_step * steps + t_int * tests), steps, tests
+
+
+def tests_polynomial(stats: SceneStats, *, mailbox=False, overlap="exact", edge=True, area=True):
+    """``(alpha, beta, gamma, delta)`` with tests per ray (cubic cells of side h, no termination)
+    ``6 (alpha h^2 + beta h + gamma + delta / h) / S`` (the module docstring's four formulas):
+    exact ``(N, E1, E2, 0)``, bbox ``(N, E1, sum B_jk, B_xyz)``, exact mailbox
+    ``(N, P/6, A/3, 0)``, bbox mailbox ``(N, 2 E1/3, sum B_jk / 3, 0)``; ``edge`` and
+    ``area`` switch off beta and gamma/delta."""
+    _check_overlap(overlap)
+    n = float(stats.n_triangles)
+    if overlap == "exact":
+        beta = float(np.sum(stats.perimeters)) / 6.0 if mailbox else stats.e1
+        gamma = stats.area / 3.0 if mailbox else stats.e2
+        delta = 0.0
+    else:
+        beta = (2.0 / 3.0) * stats.e1 if mailbox else stats.e1
+        gamma = float(np.sum(stats.bbox_pair_sums)) / (3.0 if mailbox else 1.0)
+        delta = 0.0 if mailbox else stats.bbox_triple_sum
+    return n, float(beta) if edge else 0.0, float(gamma) if area else 0.0, float(delta) if area else 0.0
 
 
 def cubic_coefficients(stats: SceneStats, r, *, mailbox=False, overlap="exact", edge=True,
                        area=True):
     """``(a, b, c)`` of ``a h^3 + b h^2 - c = 0`` whose positive root is the optimal cubic cell size.
 
-    ``r`` may be a scalar or an array (T_int / T_step); the result broadcasts.
+    ``r`` may be a scalar or an array (T_int / T_step); the result broadcasts.  With
+    :func:`tests_polynomial`'s coefficients: ``a = 2 alpha r``, ``b = beta r``,
+    ``c = V + delta r``.
     """
     _check_overlap(overlap)
     r = np.asarray(r, dtype=np.float64)
@@ -285,6 +329,29 @@ def cubic_coefficients(stats: SceneStats, r, *, mailbox=False, overlap="exact", 
         b = r * ((2.0 / 3.0) * stats.e1 if mailbox else stats.e1)
     c = stats.volume + (r * stats.bbox_triple_sum if (overlap == "bbox" and area and not mailbox) else 0.0 * r)
     return a, b, c
+
+
+def termination_coefficients(stats: SceneStats, r, traversed_fraction, *, mailbox=False, overlap="exact",
+                             edge=True, area=True):
+    """``(k4, k3, k2)`` that termination adds to the optimum's equation:
+    ``k4 h^4 + (a + k3) h^3 + (b + k2) h^2 - c = 0`` (``a, b, c`` of :func:`cubic_coefficients`).
+
+    With :func:`cell_fraction` ``g = f + (1 - f) / S0`` and ``S0 = 6V/(S h)``, the cost is
+    ``T_setup + f (T_step S0 + T_int T0) + (1 - f) (T_step + T_int T0 / S0)`` with
+    ``T0 / S0 = (alpha h^3 + beta h^2 + gamma h + delta) / V``; setting its derivative to 0
+    and multiplying by ``S h^2 / (6 f T_step)`` gives the equation with
+    ``kappa = (1 - f) S / (6 f V)``: ``k4 = 3 alpha kappa r``, ``k3 = 2 beta kappa r``,
+    ``k2 = gamma kappa r``, all 0 for ``f = 1``.  The left side is convex and increasing on
+    h > 0 (every coefficient but ``-c`` is >= 0): one positive root, the minimum, at or
+    below the cubic's (a ray's first cell is paid in full, so fuller cells cost more).
+    """
+    r = np.asarray(r, dtype=np.float64)
+    f = float(traversed_fraction)
+    if not 0.0 < f <= 1.0:
+        raise ValueError(f"traversed_fraction must be in (0, 1], got {f}")
+    alpha, beta, gamma, _ = tests_polynomial(stats, mailbox=mailbox, overlap=overlap, edge=edge, area=area)
+    kappa = (1.0 - f) * stats.surface / (6.0 * f * stats.volume)
+    return 3.0 * alpha * kappa * r, 2.0 * beta * kappa * r, gamma * kappa * r
 
 
 def solve_cell_cubic(a, b, c, xp=np):
@@ -306,14 +373,39 @@ def solve_cell_cubic(a, b, c, xp=np):
     return x * xp.exp(log_ha)
 
 
+def solve_cell_quartic(a, b, c, k4, k3, k2, xp=np):
+    """Positive root h of ``k4 h^4 + (a + k3) h^3 + (b + k2) h^2 - c = 0`` (a, c > 0; b, k's >= 0),
+    vectorised (``xp`` numpy or jax.numpy, fixed iterations).
+
+    Starts at the cubic's root h_c (:func:`solve_cell_cubic`; the k's are 0 without
+    termination and h_c is returned unchanged), where the left side is >= 0; the function
+    is convex and increasing on h > 0, so Newton from h_c never passes the root and
+    decreases monotonically to it (h stays positive).  From h_c the root is reached
+    within the fixed iterations however far below it lies: each step at least quarters
+    the excess while the quartic term dominates, then converges quadratically.
+    """
+    h = solve_cell_cubic(a, b, c, xp=xp)
+    for _ in range(CUBIC_NEWTON_ITERATIONS):
+        h2 = h * h
+        fx = h2 * (k4 * h2 + (a + k3) * h + (b + k2)) - c
+        dfx = h * (4.0 * k4 * h2 + 3.0 * (a + k3) * h + 2.0 * (b + k2))
+        h = h - fx / dfx
+    return h
+
+
 def optimal_cell_size(stats: SceneStats, t_step, t_int, *, mailbox=False, overlap="exact",
-                      edge=True, area=True):
-    """Optimal cubic cell side h* (scene units) of a single-level grid (no termination)."""
+                      edge=True, area=True, traversed_fraction=1.0):
+    """Optimal cubic cell side h* (scene units) of a single-level grid; with
+    ``traversed_fraction < 1`` rays stop at their first hit (:func:`termination_coefficients`)."""
     if not (np.all(np.asarray(t_step) > 0) and np.all(np.asarray(t_int) > 0)):
         raise ValueError("t_step and t_int must be > 0")
     r = np.asarray(t_int, dtype=np.float64) / np.asarray(t_step, dtype=np.float64)
-    a, b, c = cubic_coefficients(stats, r, mailbox=mailbox, overlap=overlap, edge=edge, area=area)
-    h = solve_cell_cubic(a, b, c)
+    kw = dict(mailbox=mailbox, overlap=overlap, edge=edge, area=area)
+    a, b, c = cubic_coefficients(stats, r, **kw)
+    if traversed_fraction >= 1.0:
+        h = solve_cell_cubic(a, b, c)
+    else:
+        h = solve_cell_quartic(a, b, c, *termination_coefficients(stats, r, traversed_fraction, **kw))
     return float(h) if np.ndim(h) == 0 else h
 
 
@@ -322,10 +414,13 @@ def optimal_uniform(stats: SceneStats, t_setup, t_step, t_int, *, mailbox=False,
                     max_total=MAX_TOTAL_CELLS) -> tuple[tuple[int, int, int], float]:
     """Best integer resolution of a single-level grid and its optimal cubic cell size.
 
-    The continuous optimum h* (cubic root) gives ``d_i / h*`` per axis; every
-    floor/ceil combination (8 candidates, clamped like :func:`cells_to_resolution`) and
-    the clamped talk rule are scored with :func:`predict_uniform`, and the cheapest is
-    returned.
+    The continuous optimum h* (cubic root; with termination, the quartic's) gives
+    ``d_i / h*`` per axis; every combination of the integers from one below the floor to
+    one above the ceiling per axis (27 candidates, clamped like
+    :func:`cells_to_resolution`) and the clamped talk rule are scored with
+    :func:`predict_uniform`, and the cheapest is returned.  The wider neighbourhood is for
+    thin axes: a box 0.5 cells deep at h* may be cheapest 2 cells deep (non-cubic cells;
+    the CAD tray, docs/compare.md), which floor/ceil alone never tries.
 
     Returns
     -------
@@ -334,11 +429,11 @@ def optimal_uniform(stats: SceneStats, t_setup, t_step, t_int, *, mailbox=False,
     if terms is None:
         terms = Terms(mailbox=bool(mailbox))
     h = optimal_cell_size(stats, t_step, t_int, mailbox=terms.mailbox, overlap=overlap,
-                          edge=terms.edge, area=terms.area)
+                          edge=terms.edge, area=terms.area, traversed_fraction=terms.traversed_fraction)
     base = cells_to_resolution(stats.volume / h ** 3, stats.extent, max_per_axis=max_per_axis,
                                max_total=max_total)
     cont = np.minimum(stats.extent / h, float(max_per_axis))
-    options = [(np.floor(x), np.ceil(x)) for x in cont]
+    options = [sorted({np.floor(x) - 1, np.floor(x), np.ceil(x), np.ceil(x) + 1}) for x in cont]
     best, best_t = base, predict_uniform(stats, base, t_setup, t_step, t_int, overlap=overlap, terms=terms)[0]
     for cand in itertools.product(*options):
         n = tuple(int(min(max(v, 1), max_per_axis)) for v in cand)
@@ -356,26 +451,14 @@ def cost_cubic(stats: SceneStats, h, t_setup, t_step, t_int, *, terms: Terms | N
 
     The smooth form used by optimisers and by posterior propagation (``xp`` may be
     ``jax.numpy``; every argument broadcasts).  ``steps = 6V/(S h)`` and the tests of
-    :func:`triangle_tests_per_ray` with ``c = (h, h, h)``, scaled by ``terms.traversed_fraction``.
+    :func:`tests_polynomial`, both scaled by :func:`cell_fraction` of ``terms.traversed_fraction``.
     """
     if terms is None:
         terms = Terms()
-    _check_overlap(overlap)
-    n = float(stats.n_triangles)
+    alpha, beta, gamma, delta = tests_polynomial(stats, mailbox=terms.mailbox, overlap=overlap, edge=terms.edge,
+                                                 area=terms.area)
     s = stats.surface
     steps = 6.0 * stats.volume / (s * h)
-    edge = 1.0 if terms.edge else 0.0
-    area = 1.0 if terms.area else 0.0
-    if not terms.mailbox:
-        if overlap == "exact":
-            refs = n + edge * stats.e1 / h + area * stats.e2 / (h * h)
-        else:
-            refs = (n + edge * stats.e1 / h + area * float(np.sum(stats.bbox_pair_sums)) / (h * h)
-                    + area * stats.bbox_triple_sum / (h * h * h))
-        tests = refs * 6.0 * h * h / s
-    elif overlap == "exact":
-        tests = (6.0 * n * h * h + edge * h * float(np.sum(stats.perimeters)) + area * 2.0 * stats.area) / s
-    else:
-        tests = (6.0 * n * h * h + edge * 4.0 * h * stats.e1 + area * 2.0 * float(np.sum(stats.bbox_pair_sums))) / s
-    f = terms.traversed_fraction
-    return t_setup + f * (t_step * steps + t_int * tests)
+    tests = 6.0 * (alpha * h * h + beta * h + gamma + delta / h) / s
+    g = cell_fraction(terms.traversed_fraction, steps, xp=xp)
+    return t_setup + g * (t_step * steps + t_int * tests)

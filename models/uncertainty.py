@@ -13,7 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .closed_forms import cells_to_resolution
-from .general import Terms, cost_cubic, cubic_coefficients, predict_uniform, solve_cell_cubic
+from .general import (Terms, cost_cubic, cubic_coefficients, predict_uniform, solve_cell_quartic,
+                      termination_coefficients)
 from .stats import SceneStats
 
 #: Central credible intervals reported (fractions of posterior mass).
@@ -103,15 +104,21 @@ def posterior_optimum(stats: SceneStats, t_setup, t_step, t_int, *, terms: Terms
     ts, tt, ti = s["t_setup"], s["t_step"], s["t_int"]
     med = (float(np.median(ts)), float(np.median(tt)), float(np.median(ti)))
     kw = dict(terms=terms, overlap=overlap)
-    a0, b0, c0 = cubic_coefficients(stats, 1.0, mailbox=terms.mailbox, overlap=overlap, edge=terms.edge,
-                                    area=terms.area)
+    kw_poly = dict(mailbox=terms.mailbox, overlap=overlap, edge=terms.edge, area=terms.area)
+    a0, b0, c0 = cubic_coefficients(stats, 1.0, **kw_poly)
     a0, b0, c_vol = float(a0), float(b0), float(stats.volume)
     c_r = float(c0) - c_vol  # the part of c proportional to r (bbox volume term)
-    h_med = float(solve_cell_cubic(a0 * med[2] / med[1], b0 * med[2] / med[1], c_vol + c_r * med[2] / med[1]))
+    # termination's coefficients, each proportional to r (zero when rays never stop)
+    k4, k3, k2 = (float(x) for x in termination_coefficients(stats, 1.0, terms.traversed_fraction, **kw_poly))
+
+    def optimum(r, xp=np):
+        return solve_cell_quartic(a0 * r, b0 * r, c_vol + c_r * r, k4 * r, k3 * r, k2 * r, xp=xp)
+
+    h_med = float(optimum(med[2] / med[1]))
 
     def per_sample(xp, t0, t1, t2):
         r = t2 / t1
-        h = solve_cell_cubic(a0 * r, b0 * r, c_vol + c_r * r, xp=xp)
+        h = optimum(r, xp=xp)
         t_own = cost_cubic(stats, h, t0, t1, t2, xp=xp, **kw)  # sample truth, own optimum
         t_at_med = cost_cubic(stats, h_med, t0, t1, t2, xp=xp, **kw)  # sample truth, median choice
         t_med_at_h = cost_cubic(stats, h, med[0], med[1], med[2], xp=xp, **kw)  # median truth, sample choice

@@ -142,6 +142,40 @@ def _finite_clamped(result_levels):
         assert res[0] * res[1] * res[2] <= MAX_TOTAL_CELLS
 
 
+def _plate_scene():
+    """A closed plate 10 x 0.3 x 10 in a box 11 x 0.6 x 11 (pinned by two tiny corner triangles)."""
+    trimesh = pytest.importorskip("trimesh")
+    m = trimesh.creation.box(extents=(10.0, 0.3, 10.0)).subdivide().subdivide()
+    v, f = np.asarray(m.vertices), np.asarray(m.faces, dtype=np.int64)
+    lo, hi = np.array([-5.5, -0.3, -5.5]), np.array([5.5, 0.3, 5.5])
+    pins = np.array([lo, lo + [1e-3, 0, 0], lo + [0, 0, 1e-3], hi, hi - [1e-3, 0, 0], hi - [0, 0, 1e-3]])
+    n = len(v)
+    return Scene(np.vstack([v, pins]), np.vstack([f, [[n, n + 1, n + 2], [n + 3, n + 4, n + 5]]]))
+
+
+def test_a_ray_enters_its_first_cell_whole():
+    """models.general.cell_fraction against the kernel on a grid one cell deep: with the distance
+    fraction f the rays actually cover (from the kernel's own hits), a ray enters
+    ``1 + f (S0 - 1)`` cells; the distance alone (``f S0``) misses most of the first cell."""
+    from test_models_general import chord_end, sample_lines
+
+    from models.general import cell_fraction
+
+    scene = _plate_scene()
+    lo, ext = np.asarray(scene.box_lo), np.asarray(scene.box_hi) - np.asarray(scene.box_lo)
+    o, w = sample_lines(np.random.default_rng(4400), ext, 100_000)
+    o = o + lo
+    t_out = chord_end(o - lo, w, ext)
+    for res in ((1, 1, 1), (4, 1, 4), (8, 1, 8), (16, 1, 16)):
+        t, prim, steps, _, _ = Grid.uniform(scene, res).count(o, w, hits=True)
+        f = np.where(prim >= 0, t, t_out).mean() / t_out.mean()
+        assert 0.2 < f < 0.6  # most rays stop at the plate, well inside the box
+        s0 = steps_per_ray(ext, res)
+        kernel = steps.mean()
+        assert cell_fraction(f, s0) * s0 == pytest.approx(kernel, rel=0.05), res
+        assert f * s0 < 0.65 * kernel, res
+
+
 @pytest.mark.parametrize("fidelity", ["paper", "analytic", "simulated"])
 def test_single_triangle_gives_finite_clamped_answers(fidelity):
     # One triangle in the plane z = 0: N = 1 and a flat box (z widened by models.stats.grid_box).

@@ -33,14 +33,41 @@ def test_edge_term_dropped_for_points_kept_for_lines():
     assert "of N at h*" in skinny["edge"].reason
 
 
-@pytest.mark.parametrize("name", ["edge", "area"])
-def test_tolerance_boundary_flips_the_decision(name):
-    """An effect is kept iff its measured change exceeds the tolerance."""
+def test_tolerance_boundary_flips_the_decision():
+    """An effect is kept iff its measured change exceeds the tolerance, unless the effects below
+    it together change the time by more: then the largest of them is put back, said in its reason."""
     s = _scene(2, 0.05)
-    ch = _by_name(select_effects(s, **T, termination=False))[name].change
-    assert ch > 0
-    assert _by_name(select_effects(s, **T, termination=False, tolerance=0.9 * ch))[name].used
-    assert not _by_name(select_effects(s, **T, termination=False, tolerance=1.1 * ch))[name].used
+    e = _by_name(select_effects(s, **T, termination=False))
+    edge, area = e["edge"].change, e["area"].change
+    assert 0 < edge < area / 1.1 < area
+    for name in ("edge", "area"):
+        ch = e[name].change
+        assert _by_name(select_effects(s, **T, termination=False, tolerance=0.9 * ch))[name].used
+    # between the two: edge dropped alone, area kept on its own merit
+    mid = _by_name(select_effects(s, **T, termination=False, tolerance=1.1 * edge))
+    assert not mid["edge"].used and mid["area"].used and "kept" not in mid["area"].reason
+    # above both: each is below, together they are not; area (the larger) is put back
+    top = _by_name(select_effects(s, **T, termination=False, tolerance=1.1 * area))
+    assert not top["edge"].used and top["area"].used and "together" in top["area"].reason
+
+
+@pytest.mark.parametrize("i", range(4))
+def test_selected_terms_predict_within_tolerance_of_the_full_model(i):
+    """The joint rule: at the full model's optimum, the selected terms' predicted time is within
+    the tolerance of the full model's (each effect is judged alone first)."""
+    from models.general import Terms, optimal_uniform, predict_uniform
+
+    s = _scene(20 + i, [0.02, 0.05, 0.1, 0.2][i], skinny=bool(i % 2))
+    e = _by_name(select_effects(s, **T, termination=True))
+    # just above the larger of edge and area: each is dropped alone, not both together
+    for tol in (0.02, 1.05 * max(e["edge"].change, e["area"].change)):
+        sel = select_effects(s, **T, termination=True, tolerance=tol)
+        frac, _ = termination_fraction(s)
+        full = Terms(traversed_fraction=frac)
+        res, _ = optimal_uniform(s, T["t_setup"], T["t_step"], T["t_int"], terms=full)
+        t_full = predict_uniform(s, res, T["t_setup"], T["t_step"], T["t_int"], terms=full)[0]
+        t_sel = predict_uniform(s, res, T["t_setup"], T["t_step"], T["t_int"], terms=sel.terms)[0]
+        assert abs(t_sel - t_full) / t_full <= tol + 1e-12
 
 
 def test_dropping_effects_changes_the_prediction_by_less_than_their_sum():

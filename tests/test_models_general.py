@@ -7,13 +7,15 @@ visits by exact geometry; ``tests/test_models_nested.py`` imports them.
 
 from __future__ import annotations
 
+import itertools
+
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from models.closed_forms import MAX_CELLS_PER_AXIS, MAX_TOTAL_CELLS, lines_cells, points_cells
-from models.general import (Terms, cost_cubic, expected_refs, optimal_cell_size, optimal_uniform, predict_uniform,
+from models.general import (Terms, cell_fraction, cost_cubic, expected_refs, optimal_cell_size, optimal_uniform, predict_uniform,
                             solve_cell_cubic, steps_per_ray, triangle_tests_per_ray)
 from models.nested import triangle_box_overlap
 from models.stats import scene_stats, stats_from_geometry, triangle_geometry
@@ -315,6 +317,43 @@ def test_cubic_root_is_the_brute_force_minimum(i):
             assert grid[np.argmin(cost)] == pytest.approx(h, rel=1e-3)
 
 
+@pytest.mark.parametrize("i", range(4))
+def test_terminated_optimum_is_the_brute_force_minimum(i):
+    """With rays stopping at their first hit (traversed fraction f < 1) the optimum solves the
+    quartic of termination_coefficients: it is the minimum of cost_cubic under the same terms,
+    found by a dense scan, and it lies at or below the cubic's (no-termination) root."""
+    rng = np.random.default_rng(3850 + i)
+    tri = random_triangles(rng, 200, rng.uniform(0.5, 5, 3), rng.uniform(0.01, 0.5), skinny=bool(i % 2))
+    s = stats_from_geometry(triangle_geometry(*mesh_of(tri)), tri.reshape(-1, 3).min(0), tri.reshape(-1, 3).max(0))
+    t_setup, t_step, t_int = 10.0, rng.uniform(0.5, 3), rng.uniform(1, 20)
+    for f in (0.9, 0.4, 0.05):
+        for mailbox in (False, True):
+            for overlap in ("exact", "bbox"):
+                terms = Terms(mailbox=mailbox, traversed_fraction=f)
+                h = optimal_cell_size(s, t_step, t_int, mailbox=mailbox, overlap=overlap, traversed_fraction=f)
+                h_free = optimal_cell_size(s, t_step, t_int, mailbox=mailbox, overlap=overlap)
+                assert h < h_free
+                grid = np.exp(np.linspace(np.log(h / 20), np.log(h * 20), 400001))
+                grid = grid[6 * s.volume / (s.surface * grid) >= 1]  # S0 >= 1: the cell fraction's clip
+                cost = cost_cubic(s, grid, t_setup, t_step, t_int, terms=terms, overlap=overlap)
+                assert grid[np.argmin(cost)] == pytest.approx(h, rel=1e-3)
+
+
+def test_cell_fraction_counts_the_first_cell():
+    """A ray enters its first cell whatever it hits: 1 + f (S0 - 1) cells of S0."""
+    assert cell_fraction(0.25, 9.0) * 9.0 == pytest.approx(1 + 0.25 * 8)
+    assert cell_fraction(0.25, 1.0) == 1.0  # one cell across: the whole of it
+    assert cell_fraction(0.25, 0.5) == 1.0  # clipped at S0 = 1
+    assert cell_fraction(1.0, 7.0) == 1.0  # rays never stop
+    np.testing.assert_allclose(cell_fraction(0.5, np.array([1.0, 2.0, 1e9])), [1.0, 0.75, 0.5])
+    # predict_uniform's counts are that fraction of the no-termination ones
+    s = _cube_stats(1000, e1=50.0, e2=3.0)
+    _, st0, te0 = predict_uniform(s, (4, 4, 4), 0.0, 1.0, 1.0, terms=Terms())
+    _, st, te = predict_uniform(s, (4, 4, 4), 0.0, 1.0, 1.0, terms=Terms(traversed_fraction=0.2))
+    assert st0 == pytest.approx(4.0) and st == pytest.approx(1 + 0.2 * 3)
+    assert te == pytest.approx(te0 * st / st0)
+
+
 def test_cubic_solver_extremes():
     a = np.array([1e-300, 1.0, 1e300, 2.0, 5.0])
     b = np.array([0.0, 1e300, 1.0, 1e-300, 3.0])
@@ -336,6 +375,32 @@ def test_optimal_uniform_beats_its_integer_neighbours():
     for d in np.ndindex(3, 3, 3):
         n = tuple(max(1, x + y - 1) for x, y in zip(res, d))
         assert predict_uniform(s, n, 10, 1.0, 4.0)[0] >= best - 1e-12
+
+
+@pytest.mark.parametrize("n, r, f", [(50, 2.0, 1.0), (100, 1.0, 0.3), (200, 0.3, 1.0)])
+def test_optimal_uniform_searches_beyond_floor_and_ceiling(n, r, f):
+    """A plate about one cell deep at the continuous optimum (two faces 0.3 apart in a box 0.34
+    deep; the CAD tray's shape): the result beats every integer resolution within one of the
+    floor and ceiling of the continuous optimum on each axis (floor/ceil alone would leave a
+    cheaper one untried in each of these cases; on a thin axis, one of 0.9 cells is only tried
+    one deep)."""
+    rng = np.random.default_rng(3950 + n)
+    top = np.concatenate([rng.uniform(0, 10, (n, 3, 1)), np.full((n, 3, 1), 0.32), rng.uniform(0, 10, (n, 3, 1))],
+                         axis=2)
+    top[:, 1:] = top[:, :1] + rng.uniform(-0.3, 0.3, (n, 2, 3)) * [1, 0, 1]
+    tri = np.concatenate([top, top - [0, 0.3, 0]])
+    s = stats_from_geometry(triangle_geometry(*mesh_of(tri)), [0, 0, 0], [10, 0.34, 10])
+    t = (10.0, 1.0, r)
+    terms = Terms(traversed_fraction=f)
+    res, h = optimal_uniform(s, *t, terms=terms)
+    cont = s.extent / h
+    assert 0.5 < cont[1] < 2.5
+    cost = predict_uniform(s, res, *t, terms=terms)[0]
+    floor_ceil = min(predict_uniform(s, tuple(max(1, int(v)) for v in q), *t, terms=terms)[0]
+                     for q in itertools.product(*[(np.floor(x), np.ceil(x)) for x in cont]))
+    assert cost < floor_ceil
+    for q in itertools.product(*[range(max(1, int(np.floor(x)) - 1), int(np.ceil(x)) + 2) for x in cont]):
+        assert predict_uniform(s, q, *t, terms=terms)[0] >= cost - 1e-12
 
 
 @pytest.mark.parametrize("n", [1, 10 ** 7])

@@ -353,3 +353,16 @@ def test_ratio_mode_gain_counts_an_assumed_set_up(l2, depth):
                             "planted")
     assert len(best["levels"]) == depth
     assert "T_setup taken as" in effects[-1]["reason"]
+
+
+def test_the_search_tries_thin_axes_one_and_two_deep():
+    """The memory/occupied-cell search scales every axis; one that scales to fewer than
+    THIN_AXIS_CELLS cells gets its floor and ceiling both (the CAD tray: 106x2x106 at 0.55x is
+    58x1x58 by rounding, and 58x2x58 is the one measured faster)."""
+    from calibrate.predict import _scaled_with_thin_axes
+
+    out = _scaled_with_thin_axes((106, 2, 106), 0.55)
+    assert out[0] == (58, 1, 58) and set(out) == {(58, 1, 58), (58, 2, 58)}
+    assert _scaled_with_thin_axes((40, 40, 40), 0.5) == [(20, 20, 20)]  # no thin axis
+    assert set(_scaled_with_thin_axes((3, 3, 50), 0.7)) == {(2, 2, 35), (2, 3, 35), (3, 2, 35), (3, 3, 35)}
+    assert _scaled_with_thin_axes((1, 1, 1), 0.25) == [(1, 1, 1)]  # never below one cell
