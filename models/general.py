@@ -52,6 +52,10 @@ Single-level optimum (cubic cells of side h, rays never terminate)
     variant above gives the same cubic ``a h^3 + b h^2 - c = 0`` with ``a = 2 N r`` and
     (exact, no mailbox) ``b = r E1, c = V``; (exact, mailbox) ``b = r P / 6, c = V``;
     (bbox, no mailbox) ``b = r E1, c = V + r B_xyz``; (bbox, mailbox) ``b = 2 r E1 / 3, c = V``.
+
+Rays that stop at their first hit (:func:`cell_fraction`): a ray enters its first cell
+whole and a fraction f of the rest, so the counts scale by ``f + (1 - f) / S0`` and the
+optimum solves a quartic (:func:`termination_coefficients`, :func:`solve_cell_quartic`).
 """
 
 from __future__ import annotations
