@@ -45,8 +45,8 @@ import numpy as np
 from models import baselines as _baselines
 from models.closed_forms import MAX_CELLS_PER_AXIS, MAX_TOTAL_CELLS, cells_to_resolution, l_level_cells
 from models.effects import EFFECT_TOLERANCE, select_effects, termination_fraction
-from models.general import (Terms, cell_fraction, expected_refs, predict_uniform, steps_per_ray, terminated_visits,
-                            visits_per_ray)
+from models.general import (THIN_AXIS_CELLS, Terms, cell_fraction, expected_refs, predict_uniform, steps_per_ray,
+                            terminated_visits, visits_per_ray)
 from models.memory import lines_beyond_cache
 from models.nested import MAX_LEVELS, TooManyPairs, clustering_change, nested_counts
 from models.portable import paper_k, paper_level_cells
@@ -135,8 +135,6 @@ SIM_MAX_CELLS = 2 ** 24
 #: makes the memory effect or the occupied cells matter (2^(j/8), j = -16..16: 1/4x to 4x per
 #: axis, 64x in cells each way).
 SEARCH_SCALES = tuple(2.0 ** (j / 8.0) for j in range(-16, 17))
-#: Axes the search scales to fewer cells than this get both their floor and ceiling.
-THIN_AXIS_CELLS = 4
 
 _STATS_CACHE: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 

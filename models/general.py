@@ -74,6 +74,9 @@ from .stats import SceneStats
 CUBIC_NEWTON_ITERATIONS = 40
 
 OVERLAP_MODES = ("exact", "bbox")
+#: An axis with fewer cells than this at the continuous optimum is *thin*: the integer
+#: search tries one cell more and one fewer than its floor and ceiling.
+THIN_AXIS_CELLS = 4
 #: Occupied cells a ray enters on a connected surface when rays stop at their first hit
 #: (:func:`visits_per_ray`): measured 0.9 to 2.0 per ray on the built-in surfaces and the
 #: meshes of ../shared/meshes at 1/8 to 8 cells per triangle, nearly the same at every
@@ -419,12 +422,12 @@ def optimal_uniform(stats: SceneStats, t_setup, t_step, t_int, *, mailbox=False,
     """Best integer resolution of a single-level grid and its optimal cubic cell size.
 
     The continuous optimum h* (cubic root; with termination, the quartic's) gives
-    ``d_i / h*`` per axis; every combination of the integers from one below the floor to
-    one above the ceiling per axis (27 candidates, clamped like
-    :func:`cells_to_resolution`) and the clamped talk rule are scored with
-    :func:`predict_uniform`, and the cheapest is returned.  The wider neighbourhood is for
-    thin axes: a box 0.5 cells deep at h* may be cheapest 2 cells deep (non-cubic cells;
-    the CAD tray, docs/compare.md), which floor/ceil alone never tries.
+    ``d_i / h*`` per axis; every floor/ceil combination (clamped like
+    :func:`cells_to_resolution`; on a thin axis, fewer than THIN_AXIS_CELLS cells at h*,
+    the integers from one below the floor to one above the ceiling) and the clamped talk
+    rule are scored with :func:`predict_uniform`, and the cheapest is returned.  A box
+    0.9 cells deep at h* may be cheapest 2 cells deep (non-cubic cells; the CAD tray,
+    docs/compare.md), which floor/ceil alone never tries.
 
     Returns
     -------
@@ -437,7 +440,8 @@ def optimal_uniform(stats: SceneStats, t_setup, t_step, t_int, *, mailbox=False,
     base = cells_to_resolution(stats.volume / h ** 3, stats.extent, max_per_axis=max_per_axis,
                                max_total=max_total)
     cont = np.minimum(stats.extent / h, float(max_per_axis))
-    options = [sorted({np.floor(x) - 1, np.floor(x), np.ceil(x), np.ceil(x) + 1}) for x in cont]
+    options = [sorted({np.floor(x) - 1, np.floor(x), np.ceil(x), np.ceil(x) + 1}) if x < THIN_AXIS_CELLS
+               else (np.floor(x), np.ceil(x)) for x in cont]
     best, best_t = base, predict_uniform(stats, base, t_setup, t_step, t_int, overlap=overlap, terms=terms)[0]
     for cand in itertools.product(*options):
         n = tuple(int(min(max(v, 1), max_per_axis)) for v in cand)
