@@ -151,8 +151,9 @@ def select_effects(stats: SceneStats, t_setup, t_step, t_int, *, mailbox=False, 
     if termination:
         ch = change(replace(full, traversed_fraction=1.0))
         effects.append(Effect("termination", ch > tolerance, ch,
-                              f"termination (approximate): ~{_pct(p_hit)} of rays hit, traversing "
-                              f"{_pct(frac)} of the no-hit work; ignoring it changes time by {_pct(ch)}"))
+                              f"termination (approximate): ~{_pct(p_hit)} of rays hit, covering "
+                              f"{_pct(frac)} of the no-hit distance (their first cell whole); ignoring it "
+                              f"changes time by {_pct(ch)}"))
     else:
         effects.append(Effect("termination", False, 0.0, "termination: rays do not stop at hits"))
     disp = "" if dispersion is None else f"per-cell count dispersion {dispersion:.2f}x Poisson; "
