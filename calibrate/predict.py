@@ -87,16 +87,16 @@ RATIO_MODE_T_SETUP_IN_T_STEP = 2.66
 #: the closed form towards cheaper neighbours, stopping at the first dearer one).
 #: ``levels=auto`` stops at the first depth that does not beat the one above it.
 #: A deeper grid is chosen only when its predicted cost per ray is at least this fraction
-#: below the shallower one's.  The four-constant model misses part of what a nested grid
-#: pays in memory (several times the cells, a node fetch per subgrid entered;
-#: docs/calibration.md), so a small predicted gain is not evidence.  With a calibration
-#: (per ray set, T_sub fitted in context with a wide prior) ``calibrate compare`` found the
-#: predicted depth gains on its 18 scenes either at least 12% (cylinder19996, armadillo:
-#: the two-level grid measured 17% faster) or at most 0% (the shallower grid measured as
-#: fast or faster, the bunny a tie at -2% predicted): 10% lies in that gap
-#: (docs/compare.md).  The earlier 20% was set when T_sub was held at a third of its
-#: in-context value, which made every nested grid look cheaper than it is.
-DEEPEN_MIN_GAIN = 0.10
+#: below the shallower one's: a small predicted gain is not evidence.  Four
+#: ``calibrate compare`` runs of 2026-12-02 (night; T_mem, T_visit, a ray's first cell
+#: whole) put the predicted gain of a second level at 6.3-6.9% on cylinder19996 and
+#: armadillo (measured: 3.7-25.4% and -0.4-8.2%, the two-level grid faster in 7 of 8),
+#: -7.7% to -8.5% on the bunny (measured -10% to -17%) and -16% or less on every other
+#: scene; 3% lies in that gap, nearer the positive side, since a second level the model
+#: overrates costs little (docs/compare.md, "The depth rule, again").  Earlier: 20% when
+#: T_sub was held at a third of its in-context value, 10% when the two scans' predicted
+#: gains were 12-13%.
+DEEPEN_MIN_GAIN = 0.03
 #: A plan holding more than this many times the largest grid the calibration timed gets
 #: a note: its cost is extrapolated (measured here: grids past 64 MB cost 1.5-2.7 times
 #: what the one-level memory term says; docs/compare.md).
