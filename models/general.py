@@ -387,9 +387,10 @@ def solve_cell_quartic(a, b, c, k4, k3, k2, xp=np):
     Starts at the cubic's root h_c (:func:`solve_cell_cubic`; the k's are 0 without
     termination and h_c is returned unchanged), where the left side is >= 0; the function
     is convex and increasing on h > 0, so Newton from h_c never passes the root and
-    decreases monotonically to it (h stays positive).  From h_c the root is reached
-    within the fixed iterations however far below it lies: each step at least quarters
-    the excess while the quartic term dominates, then converges quadratically.
+    decreases monotonically to it (h stays positive).  Far above the root each step
+    takes at least a quarter off h (the quartic term dominating), near it Newton
+    converges quadratically: the fixed iterations reach roots 10^3 below h_c and more
+    (rays stopping at once, f = 1e-6, put it 30-70 times below; tested to rounding).
     """
     h = solve_cell_cubic(a, b, c, xp=xp)
     for _ in range(CUBIC_NEWTON_ITERATIONS):

@@ -15,8 +15,9 @@ import numpy as np
 import pytest
 
 from models.closed_forms import MAX_CELLS_PER_AXIS, MAX_TOTAL_CELLS, lines_cells, points_cells
-from models.general import (Terms, cell_fraction, cost_cubic, expected_refs, optimal_cell_size, optimal_uniform, predict_uniform,
-                            solve_cell_cubic, steps_per_ray, triangle_tests_per_ray)
+from models.general import (Terms, cell_fraction, cost_cubic, cubic_coefficients, expected_refs, optimal_cell_size,
+                            optimal_uniform, predict_uniform, solve_cell_cubic, steps_per_ray, termination_coefficients,
+                            triangle_tests_per_ray)
 from models.nested import triangle_box_overlap
 from models.stats import scene_stats, stats_from_geometry, triangle_geometry
 
@@ -337,6 +338,19 @@ def test_terminated_optimum_is_the_brute_force_minimum(i):
                 grid = grid[6 * s.volume / (s.surface * grid) >= 1]  # S0 >= 1: the cell fraction's clip
                 cost = cost_cubic(s, grid, t_setup, t_step, t_int, terms=terms, overlap=overlap)
                 assert grid[np.argmin(cost)] == pytest.approx(h, rel=1e-3)
+
+
+@pytest.mark.parametrize("n", [10, 10 ** 4, 10 ** 7])
+def test_quartic_solver_reaches_far_roots(n):
+    """Rays that stop at once (the distance fraction's floor, 1e-6) put the optimum 30-70 times
+    below the cubic's; the fixed Newton iterations still solve the quartic to rounding."""
+    s = _cube_stats(n, e1=n * 0.01, e2=n * 1e-4)
+    for f in (1e-6, 1e-3, 0.1, 0.9):
+        h = optimal_cell_size(s, 1.0, 0.2, traversed_fraction=f)
+        a, b, c = cubic_coefficients(s, 0.2)
+        k4, k3, k2 = termination_coefficients(s, 0.2, f)
+        assert abs(k4 * h ** 4 + (a + k3) * h ** 3 + (b + k2) * h ** 2 - c) <= 1e-12 * c
+        assert 0 < h <= optimal_cell_size(s, 1.0, 0.2)
 
 
 def test_cell_fraction_counts_the_first_cell():
