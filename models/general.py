@@ -103,6 +103,8 @@ class Terms:
 
 
 def _resolution(resolution) -> np.ndarray:
+    if type(resolution) is tuple and len(resolution) == 3 and all(type(x) is int and x >= 1 for x in resolution):
+        return np.array(resolution, dtype=np.float64)  # the planners' own tuples: no array checks needed
     n = np.asarray(resolution)
     if n.shape != (3,):
         raise ValueError(f"resolution must be (nx, ny, nz), got shape {n.shape}")
