@@ -77,6 +77,15 @@ def planted_counts(rng: np.random.Generator, j: int, rays: int) -> dict:
     return dict(steps=int(rays * steps_pr), tests=int(rays * tests_pr), subgrids=int(rays * sub_pr))
 
 
+def assert_planted_recovered(result, truth: dict, names, rel: float = 0.05) -> None:
+    """Each named constant of a fit: median within ``rel`` of the planted truth, the truth inside
+    its 95% interval."""
+    for name in names:
+        c = result.constants[name]
+        assert c["median"] == pytest.approx(truth[name], rel=rel), name
+        assert c["ci95"][0] <= truth[name] <= c["ci95"][1], name
+
+
 def exported_header(cal: dict, tmp_path: Path, condition: str) -> str:
     """Export ``cal``'s header into ``tmp_path``, check that a C99 program including it
     (-Wall -Wextra -Werror -pedantic) finds ``condition`` true, and return the header's text."""

@@ -21,7 +21,7 @@ from calibrate import calfile, host
 from calibrate import fit as F
 from calibrate._grid import Scene
 from calibrate.predict import _uniform_counts, predict, resolve_constants, scene_statistics
-from conftest import exported_header, planted_counts
+from conftest import assert_planted_recovered, exported_header, planted_counts
 from models.effects import select_effects
 from models.memory import LINE_BYTES, STEP_LINES, TEST_LINES, lines_beyond_cache, miss_fraction
 from models.uncertainty import discrete_posterior_optimum
@@ -130,10 +130,7 @@ def planted():
 def test_the_fit_recovers_a_planted_t_mem(planted):
     _, result, _ = planted
     assert "t_mem_ns" in result.names and "t_mem_skipped" not in result.diagnostics
-    for name in ("t_step_ns", "t_int_ns", "t_mem_ns"):
-        c = result.constants[name]
-        assert c["median"] == pytest.approx(TRUTH[name], rel=0.05), name
-        assert c["ci95"][0] <= TRUTH[name] <= c["ci95"][1], name
+    assert_planted_recovered(result, TRUTH, ("t_step_ns", "t_int_ns", "t_mem_ns"))
 
 
 def test_without_the_memory_term_the_same_timings_fit_worse(planted):

@@ -25,7 +25,7 @@ from calibrate.predict import predict, resolve_constants
 from calibrate.rays import isotropic
 from calibrate.scenes import scattered_compact
 from calibrate.suites import empty_grid, resolution_for_cells
-from conftest import exported_header, planted_counts
+from conftest import assert_planted_recovered, exported_header, planted_counts
 from models.effects import termination_fraction
 from models.general import (VISITS_SURFACE, Terms, occupied_cells, predict_uniform, terminated_visits,
                             visits_per_ray)
@@ -216,10 +216,7 @@ def planted():
 def test_the_fit_recovers_a_planted_t_visit(planted):
     _, result, _ = planted
     assert "t_visit_ns" in result.names and "t_visit_skipped" not in result.diagnostics
-    for name in ("t_step_ns", "t_int_ns", "t_visit_ns"):
-        c = result.constants[name]
-        assert c["median"] == pytest.approx(TRUTH[name], rel=0.05), name
-        assert c["ci95"][0] <= TRUTH[name] <= c["ci95"][1], name
+    assert_planted_recovered(result, TRUTH, ("t_step_ns", "t_int_ns", "t_visit_ns"))
 
 
 def test_an_absent_t_visit_is_left_out_and_the_fit_says_why():

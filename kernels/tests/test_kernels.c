@@ -484,6 +484,17 @@ static int cube_watertight(const double *v, int64_t nv, const int64_t *f, int64_
     return wt;
 }
 
+/* The cube with split vertices: every face its own three corners (36 vertices, 8 positions). */
+static void split_cube(double v[36][3], int64_t f[12][3])
+{
+    for (int t = 0; t < 12; ++t) {
+        for (int k = 0; k < 3; ++k) {
+            memcpy(v[3 * t + k], CUBE_V[CUBE_F[t][k]], sizeof v[0]);
+            f[t][k] = 3 * t + k;
+        }
+    }
+}
+
 /* Scene sums of the unit cube, known in closed form; watertightness of its variants. */
 static void test_mesh_sums(void)
 {
@@ -521,12 +532,7 @@ static void test_mesh_sums(void)
     /* split vertices: every face gets its own three corners, one of them at -0.0 */
     double split[36][3];
     int64_t sf[12][3];
-    for (int t = 0; t < 12; ++t) {
-        for (int k = 0; k < 3; ++k) {
-            memcpy(split[3 * t + k], CUBE_V[CUBE_F[t][k]], sizeof split[0]);
-            sf[t][k] = 3 * t + k;
-        }
-    }
+    split_cube(split, sf);
     split[0][0] = -0.0;
     CHECK(cube_watertight(&split[0][0], 36, &sf[0][0], 12) == 1, "split-vertex cube not watertight");
     split[0][0] = 1e-300;
@@ -720,12 +726,7 @@ static void test_visits_and_positions(void)
           "cube: watertight %d with %lld positions, want 1 and 8", wt, (long long)positions);
     double split_v[36][3];
     int64_t split_f[12][3];
-    for (int t = 0; t < 12; ++t) {
-        for (int c = 0; c < 3; ++c) {
-            memcpy(split_v[3 * t + c], CUBE_V[CUBE_F[t][c]], sizeof split_v[0]);
-            split_f[t][c] = 3 * t + c;
-        }
-    }
+    split_cube(split_v, split_f);
     gc_mesh split = {&split_v[0][0], 36, &split_f[0][0], 12};
     CHECK(gc_mesh_topology(&split, &wt, &positions, err) == GC_OK && wt == 1 && positions == 8,
           "split cube: watertight %d with %lld positions, want 1 and 8", wt, (long long)positions);
