@@ -636,6 +636,16 @@ def _nested_levels(counts):
     return out
 
 
+def _terminated_nested(counts, stats, traversed_fraction):
+    """(steps, tests, subgrids, occupied cells entered) per ray of a nested plan's model counts
+    (:func:`models.nested.nested_counts`, no termination) for rays covering ``traversed_fraction``
+    of the distance: all scaled by :func:`models.general.cell_fraction`, the visits by
+    :func:`models.general.terminated_visits`."""
+    g = cell_fraction(traversed_fraction, counts.steps)
+    return (g * counts.steps, g * counts.tests, g * counts.subgrids,
+            terminated_visits(counts.visits, stats.separate_fraction, g))
+
+
 def _analytic_nested(scene, stats, k: Constants, L, mailbox):
     counts, overlap, how = _nested_plan(scene, stats, k, L)
     frac, _ = termination_fraction(stats)
@@ -645,9 +655,9 @@ def _analytic_nested(scene, stats, k: Constants, L, mailbox):
                          clustering_change=clustering_change(counts, stats, k.t_step, k.t_int, ns0))
     f = sel.terms.traversed_fraction
     g = cell_fraction(f, counts.steps)
-    plan = dict(levels=_nested_levels(counts), steps=g * counts.steps, tests=g * counts.tests,
-                subgrids=g * counts.subgrids, memory_bytes=_nested_memory_bytes(counts),
-                visits=terminated_visits(counts.visits, stats.separate_fraction, g),
+    steps, tests, subgrids, visits = _terminated_nested(counts, stats, f)
+    plan = dict(levels=_nested_levels(counts), steps=steps, tests=tests, subgrids=subgrids,
+                memory_bytes=_nested_memory_bytes(counts), visits=visits,
                 terms=sel.terms, counts=counts, overlap=overlap)
     effects = _effect_dicts(sel)
     if k.has_memory:
@@ -979,10 +989,9 @@ def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analyt
         predicted["model_cost_per_ray"] = k.cost(m_steps, m_tests, 0.0, plan_bytes,
                                                  visits_per_ray(stats, res1, terms=terms))
     elif "counts" in plan:
-        c = plan["counts"]
-        g = cell_fraction(terms.traversed_fraction, c.steps)
-        predicted["model_cost_per_ray"] = k.cost(g * c.steps, g * c.tests, g * c.subgrids, plan_bytes,
-                                                 terminated_visits(c.visits, stats.separate_fraction, g))
+        # the model's counts, also for a simulated plan (whose steps and tests are the kernel's)
+        steps, tests, subgrids, visits = _terminated_nested(plan["counts"], stats, terms.traversed_fraction)
+        predicted["model_cost_per_ray"] = k.cost(steps, tests, subgrids, plan_bytes, visits)
     else:
         predicted["model_cost_per_ray"] = None
     base, base_detail = _baseline_table(stats, k, terms)
