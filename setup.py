@@ -9,7 +9,7 @@ import numpy
 from setuptools import Extension, setup
 from setuptools.command.build_ext import build_ext
 
-KERNEL_SOURCES = ["grid.c", "build.c", "overlap.c", "traverse.c", "brute.c", "stats.c"]
+KERNEL_SOURCES = ["grid.c", "build.c", "overlap.c", "traverse.c", "brute.c", "stats.c", "bigmem.c"]
 CFLAGS = ["-std=c99", "-O2", "-pthread", "-ffp-contract=off", "-fno-fast-math"]
 
 

@@ -292,7 +292,7 @@ def cmd_show(args) -> int:
         console.print(table)
     fp = cal["fingerprint"]
     console.print(f"host: {fp.get('cpu_model')}, {fp.get('logical_cores')} cores, governor {fp.get('governor')}, "
-                  f"measured {fp.get('date_utc')}")
+                  f"huge pages {fp.get('huge_pages')}, measured {fp.get('date_utc')}")
     meta = cal.get("meta", {})
     if meta.get("holdout_mare") is not None:
         console.print(f"held-back median absolute relative error: {100 * meta['holdout_mare']:.1f}%"

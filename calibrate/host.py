@@ -27,6 +27,9 @@ CPUINFO_PATH = Path("/proc/cpuinfo")
 CPUFREQ_DIR = Path("/sys/devices/system/cpu/cpu0/cpufreq")
 KHZ_PER_MHZ = 1000.0
 CACHE_DIR = Path("/sys/devices/system/cpu/cpu0/cache")
+#: Transparent huge pages: the kernels ask for them on a grid's arrays of 2 MiB and more
+#: (kernels/bigmem.c), which the OS grants in mode "always" or "madvise".
+THP_PATH = Path("/sys/kernel/mm/transparent_hugepage/enabled")
 #: The cache level the memory effect is measured against (models/memory.py): the
 #: per-core level-2 cache, which a traversal's cells and triangles spill out of first.
 CACHE_LEVEL = 2
@@ -77,6 +80,14 @@ def _cpu_mhz(cpuinfo: str | None) -> float | None:
     if khz is not None:
         return khz / KHZ_PER_MHZ
     return _to_float(_cpuinfo_field(cpuinfo, "cpu MHz"))
+
+
+def _huge_pages(text: str | None) -> str | None:
+    """The selected mode of "always [madvise] never" (the bracketed word), or None."""
+    for word in (text or "").split():
+        if len(word) > 2 and word[0] == "[" and word[-1] == "]":
+            return word[1:-1]
+    return None
 
 
 def _affinity() -> list[int] | None:
@@ -149,6 +160,7 @@ def fingerprint(extra: dict | None = None) -> dict:
     platform, machine, python, python_implementation, packages (name ->
     version or None), timer (see ``protocol.timer_info``),
     timer_resolution_ns, cache_bytes and cache_source (see :func:`cache_bytes`),
+    huge_pages (the transparent huge page mode: "always", "madvise", "never"),
     date_utc (ISO 8601). Missing facts are None.
     """
     cpuinfo = _read_text(CPUINFO_PATH)
@@ -172,6 +184,7 @@ def fingerprint(extra: dict | None = None) -> dict:
         "timer_resolution_ns": timer.get("resolution_ns"),
         "cache_bytes": cache,
         "cache_source": cache_source,
+        "huge_pages": _safe(lambda: _huge_pages(_read_text(THP_PATH))),
         "date_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
     }
     if extra:

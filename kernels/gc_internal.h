@@ -159,6 +159,15 @@ gc_status gc_check_mesh_shape(const gc_mesh *mesh, int allow_empty, char *err);
 /* Validate rays: finite origins, finite non-zero directions. */
 gc_status gc_check_rays(int64_t n, const double *origins, const double *directions, char *err);
 
+/* A grid's large traversal arrays (bigmem.c): from GC_HUGE_PAGE_BYTES on they are
+ * backed by huge pages where the OS offers them; either way released with free().
+ * gc_big_calloc: zeroed memory, NULL when out of memory.  gc_big_move: the
+ * malloc'd block p of `bytes` moved into such memory (p is freed), or p itself
+ * when it is smaller or that allocation fails. */
+#define GC_HUGE_PAGE_BYTES ((size_t)2 << 20)
+void *gc_big_calloc(size_t bytes);
+void *gc_big_move(void *p, size_t bytes);
+
 void gc_set_error(char *err, const char *fmt, ...)
 #if defined(__GNUC__)
     __attribute__((format(printf, 2, 3)))

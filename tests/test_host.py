@@ -13,7 +13,7 @@ from calibrate.host import FINGERPRINT_PACKAGES, fingerprint, package_versions
 KEYS = {
     "cpu_model", "logical_cores", "affinity", "governor", "cpu_mhz", "os", "kernel",
     "platform", "machine", "python", "python_implementation", "packages", "timer",
-    "timer_resolution_ns", "date_utc",
+    "timer_resolution_ns", "huge_pages", "date_utc",
 }
 
 
@@ -50,7 +50,11 @@ def test_planted_linux_files_are_read(tmp_path, monkeypatch):
     (freq / "scaling_cur_freq").write_text("3200000\n")  # kHz
     monkeypatch.setattr(host, "CPUINFO_PATH", cpuinfo)
     monkeypatch.setattr(host, "CPUFREQ_DIR", freq)
+    thp = tmp_path / "thp"
+    thp.write_text("always [madvise] never\n")
+    monkeypatch.setattr(host, "THP_PATH", thp)
     fp = fingerprint()
+    assert fp["huge_pages"] == "madvise"
     assert fp["cpu_model"] == "Planted CPU 9000 @ 3.20GHz"
     assert fp["governor"] == "performance"
     assert fp["cpu_mhz"] == 3200.0  # cpufreq preferred over cpuinfo
@@ -61,10 +65,12 @@ def test_planted_linux_files_are_read(tmp_path, monkeypatch):
 def test_missing_everything_gives_nulls_not_errors(tmp_path, monkeypatch):
     monkeypatch.setattr(host, "CPUINFO_PATH", tmp_path / "absent" / "cpuinfo")
     monkeypatch.setattr(host, "CPUFREQ_DIR", tmp_path / "absent")
+    monkeypatch.setattr(host, "THP_PATH", tmp_path / "absent" / "enabled")
     monkeypatch.delattr(os, "sched_getaffinity", raising=False)
     monkeypatch.setattr(os, "cpu_count", lambda: None)
     fp = fingerprint()
     assert fp["governor"] is None and fp["cpu_mhz"] is None and fp["affinity"] is None
+    assert fp["huge_pages"] is None
     assert fp["logical_cores"] is None
     assert fp["cpu_model"] is None or isinstance(fp["cpu_model"], str)  # platform fallback
     json.dumps(fp)
@@ -79,8 +85,11 @@ def test_garbage_files_give_nulls(tmp_path, monkeypatch):
     (freq / "scaling_cur_freq").write_text("n/a\n")
     monkeypatch.setattr(host, "CPUINFO_PATH", cpuinfo)
     monkeypatch.setattr(host, "CPUFREQ_DIR", freq)
+    thp = tmp_path / "thp"
+    thp.write_text("always madvise never []\n")  # no mode selected
+    monkeypatch.setattr(host, "THP_PATH", thp)
     fp = fingerprint()
-    assert fp["governor"] is None and fp["cpu_mhz"] is None
+    assert fp["governor"] is None and fp["cpu_mhz"] is None and fp["huge_pages"] is None
     json.dumps(fp)
 
 

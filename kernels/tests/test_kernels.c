@@ -6,10 +6,12 @@
  * Run under AddressSanitizer and UndefinedBehaviorSanitizer by
  * `make test-sanitize`.
  */
+#include "gc_internal.h" /* gc_big_calloc, gc_big_move */
 #include "gridcal.h"
 #include "overlap.h"
 
 #include <math.h>
+#include <stdint.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -735,6 +737,71 @@ static void test_visits_and_positions(void)
           "cracked cube: watertight %d with %lld positions, want 0 and 9", wt, (long long)positions);
 }
 
+/* The large arrays' allocations: zeroed, aligned to a huge page from one huge
+ * page on (Linux), contents kept by a move; and a grid whose packs and cells
+ * both pass that size still meets brute force. */
+static void test_big_arrays(void)
+{
+    const size_t sizes[5] = {1, 4096, GC_HUGE_PAGE_BYTES - 1, GC_HUGE_PAGE_BYTES, 3 * GC_HUGE_PAGE_BYTES + 12345};
+    for (int i = 0; i < 5; ++i) {
+        const size_t n = sizes[i];
+        unsigned char *p = gc_big_calloc(n);
+        CHECK(p != NULL, "gc_big_calloc(%zu) failed", n);
+        if (!p) {
+            continue;
+        }
+        size_t nonzero = 0;
+        for (size_t k = 0; k < n; ++k) {
+            nonzero += p[k] != 0;
+        }
+        CHECK(nonzero == 0, "gc_big_calloc(%zu): %zu bytes not zero", n, nonzero);
+#if defined(__linux__)
+        CHECK(n < GC_HUGE_PAGE_BYTES || (uintptr_t)p % GC_HUGE_PAGE_BYTES == 0,
+              "gc_big_calloc(%zu) not aligned to a huge page", n);
+#endif
+        free(p);
+        unsigned char *q = malloc(n);
+        CHECK(q != NULL, "malloc(%zu) failed", n);
+        if (!q) {
+            continue;
+        }
+        for (size_t k = 0; k < n; ++k) {
+            q[k] = (unsigned char)(k * 131u + 7u);
+        }
+        unsigned char *r = gc_big_move(q, n);
+        size_t changed = 0;
+        for (size_t k = 0; k < n; ++k) {
+            changed += r[k] != (unsigned char)(k * 131u + 7u);
+        }
+        CHECK(changed == 0, "gc_big_move(%zu): %zu bytes changed", n, changed);
+        CHECK(n >= GC_HUGE_PAGE_BYTES || r == q, "gc_big_move(%zu) moved a small block", n);
+        free(r);
+    }
+    /* long triangles in 64^3 cells: 2 MiB of cells (8 bytes each) and over 2 MiB of packs */
+    mesh_buf m = random_soup(150, 0.6, 3);
+    const int64_t n = 2000;
+    double *o = malloc((size_t)n * 3 * sizeof(double)), *d = malloc((size_t)n * 3 * sizeof(double));
+    double lo[3], hi[3];
+    char err[GC_ERROR_LEN];
+    gc_mesh mesh = as_mesh(&m);
+    CHECK(gc_mesh_box(&mesh, lo, hi, err) == GC_OK, "box: %s", err);
+    random_rays(n, lo, hi, 104, o, d);
+    gc_build_params p = gc_build_params_default();
+    p.resolution[0] = p.resolution[1] = p.resolution[2] = 64;
+    gc_grid *g = NULL;
+    CHECK(gc_grid_build(&mesh, &p, &g, err) == GC_OK, "big grid: %s", err);
+    gc_grid_info info = {0};
+    if (g) {
+        gc_grid_get_info(g, &info);
+    }
+    CHECK(info.memory_bytes > 2 * (int64_t)GC_HUGE_PAGE_BYTES, "the big grid holds %lld bytes, want more than 4 MiB",
+          (long long)info.memory_bytes);
+    gc_grid_free(g);
+    compare_with_brute(&m, &p, n, o, d, "big grid (huge pages)");
+    free(o), free(d);
+    mesh_free(&m);
+}
+
 int main(void)
 {
     test_prepared_overlap();
@@ -748,6 +815,7 @@ int main(void)
     test_watertight();
     test_scaled_scenes();
     test_visits_and_positions();
+    test_big_arrays();
     printf("%d passed, %d failed\n", checks - failures, failures);
     return failures ? 1 : 0;
 }
