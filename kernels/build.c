@@ -1083,7 +1083,7 @@ static gc_status build_grid(builder *b, const gc_mesh *mesh, gc_grid **out)
     }
     st = check_memory(b, GC_PACK_BYTES(g->n_refs), "the per-reference triangles");
     if (st == GC_OK) {
-        g->ref_tris = gc_big_calloc((size_t)GC_PACK_BYTES(g->n_refs > 0 ? g->n_refs : 1));
+        g->ref_tris = gc_big_alloc((size_t)GC_PACK_BYTES(g->n_refs > 0 ? g->n_refs : 1), &g->ref_tris_mapped);
         if (!g->ref_tris) {
             gc_set_error(err, "out of memory copying %lld triangle references", (long long)g->n_refs);
             st = GC_ERR_NO_MEMORY;
@@ -1110,7 +1110,7 @@ static gc_status build_grid(builder *b, const gc_mesh *mesh, gc_grid **out)
     g->tri_id = NULL;
     free(g->refs);
     g->refs = NULL;
-    g->cells = gc_big_move(g->cells, (size_t)g->n_cells * sizeof(gc_cell));
+    g->cells = gc_big_move(g->cells, (size_t)g->n_cells * sizeof(gc_cell), &g->cells_mapped);
     *out = g;
     return GC_OK;
 }

@@ -95,6 +95,7 @@ struct gc_grid {
     int64_t n_nodes;
     gc_cell *cells;
     int64_t n_cells;
+    size_t ref_tris_mapped, cells_mapped; /* bytes mapped by gc_big_alloc, 0 if malloc'd */
     uint32_t *refs;     /* the stored triangle of each reference (build only; freed after) */
     int64_t n_refs;
     gc_intersector intersector;
@@ -160,13 +161,16 @@ gc_status gc_check_mesh_shape(const gc_mesh *mesh, int allow_empty, char *err);
 gc_status gc_check_rays(int64_t n, const double *origins, const double *directions, char *err);
 
 /* A grid's large traversal arrays (bigmem.c): from GC_HUGE_PAGE_BYTES on they are
- * backed by huge pages where the OS offers them; either way released with free().
- * gc_big_calloc: zeroed memory, NULL when out of memory.  gc_big_move: the
- * malloc'd block p of `bytes` moved into such memory (p is freed), or p itself
- * when it is smaller or that allocation fails. */
+ * mapped on their own and backed by huge pages where the OS offers them.
+ * gc_big_alloc: zeroed memory, NULL when out of memory; *mapped is the length
+ * mapped, or 0 for an ordinary calloc'd block.  gc_big_free releases either.
+ * gc_big_move: the malloc'd block p of `bytes` moved into a mapping (p is
+ * freed; *mapped its length), or p itself (*mapped = 0) when it is smaller or
+ * the mapping fails. */
 #define GC_HUGE_PAGE_BYTES ((size_t)2 << 20)
-void *gc_big_calloc(size_t bytes);
-void *gc_big_move(void *p, size_t bytes);
+void *gc_big_alloc(size_t bytes, size_t *mapped);
+void gc_big_free(void *p, size_t mapped);
+void *gc_big_move(void *p, size_t bytes, size_t *mapped);
 
 void gc_set_error(char *err, const char *fmt, ...)
 #if defined(__GNUC__)

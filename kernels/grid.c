@@ -150,10 +150,10 @@ void gc_grid_free(gc_grid *grid)
         return;
     }
     free(grid->tris);
-    free(grid->ref_tris);
+    gc_big_free(grid->ref_tris, grid->ref_tris_mapped);
     free(grid->tri_id);
     free(grid->nodes);
-    free(grid->cells);
+    gc_big_free(grid->cells, grid->cells_mapped);
     free(grid->refs);
     free(grid);
 }

@@ -737,16 +737,17 @@ static void test_visits_and_positions(void)
           "cracked cube: watertight %d with %lld positions, want 0 and 9", wt, (long long)positions);
 }
 
-/* The large arrays' allocations: zeroed, aligned to a huge page from one huge
- * page on (Linux), contents kept by a move; and a grid whose packs and cells
- * both pass that size still meets brute force. */
+/* The large arrays' allocations: zeroed, mapped on their own and aligned to a
+ * huge page from one huge page on (Linux), contents kept by a move; and a grid
+ * whose packs and cells both pass that size still meets brute force. */
 static void test_big_arrays(void)
 {
     const size_t sizes[5] = {1, 4096, GC_HUGE_PAGE_BYTES - 1, GC_HUGE_PAGE_BYTES, 3 * GC_HUGE_PAGE_BYTES + 12345};
     for (int i = 0; i < 5; ++i) {
         const size_t n = sizes[i];
-        unsigned char *p = gc_big_calloc(n);
-        CHECK(p != NULL, "gc_big_calloc(%zu) failed", n);
+        size_t mapped = 1;
+        unsigned char *p = gc_big_alloc(n, &mapped);
+        CHECK(p != NULL, "gc_big_alloc(%zu) failed", n);
         if (!p) {
             continue;
         }
@@ -754,12 +755,16 @@ static void test_big_arrays(void)
         for (size_t k = 0; k < n; ++k) {
             nonzero += p[k] != 0;
         }
-        CHECK(nonzero == 0, "gc_big_calloc(%zu): %zu bytes not zero", n, nonzero);
+        CHECK(nonzero == 0, "gc_big_alloc(%zu): %zu bytes not zero", n, nonzero);
+        CHECK(n >= GC_HUGE_PAGE_BYTES ? mapped == 0 || (mapped >= n && mapped % GC_HUGE_PAGE_BYTES == 0)
+                                      : mapped == 0,
+              "gc_big_alloc(%zu) mapped %zu bytes", n, mapped);
 #if defined(__linux__)
-        CHECK(n < GC_HUGE_PAGE_BYTES || (uintptr_t)p % GC_HUGE_PAGE_BYTES == 0,
-              "gc_big_calloc(%zu) not aligned to a huge page", n);
+        CHECK(n < GC_HUGE_PAGE_BYTES || (mapped && (uintptr_t)p % GC_HUGE_PAGE_BYTES == 0),
+              "gc_big_alloc(%zu) not mapped on a huge page boundary", n);
 #endif
-        free(p);
+        memset(p, 0xab, n); /* every byte writable */
+        gc_big_free(p, mapped);
         unsigned char *q = malloc(n);
         CHECK(q != NULL, "malloc(%zu) failed", n);
         if (!q) {
@@ -768,14 +773,14 @@ static void test_big_arrays(void)
         for (size_t k = 0; k < n; ++k) {
             q[k] = (unsigned char)(k * 131u + 7u);
         }
-        unsigned char *r = gc_big_move(q, n);
+        unsigned char *r = gc_big_move(q, n, &mapped);
         size_t changed = 0;
         for (size_t k = 0; k < n; ++k) {
             changed += r[k] != (unsigned char)(k * 131u + 7u);
         }
         CHECK(changed == 0, "gc_big_move(%zu): %zu bytes changed", n, changed);
-        CHECK(n >= GC_HUGE_PAGE_BYTES || r == q, "gc_big_move(%zu) moved a small block", n);
-        free(r);
+        CHECK(n >= GC_HUGE_PAGE_BYTES || (r == q && mapped == 0), "gc_big_move(%zu) moved a small block", n);
+        gc_big_free(r, mapped);
     }
     /* long triangles in 64^3 cells: 2 MiB of cells (8 bytes each) and over 2 MiB of packs */
     mesh_buf m = random_soup(150, 0.6, 3);
