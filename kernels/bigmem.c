@@ -45,9 +45,7 @@ void *gc_big_alloc(size_t bytes, size_t *mapped)
                 if (head) {
                     (void)munmap(raw, head);
                 }
-                if (page - head) {
-                    (void)munmap(p + len, page - head);
-                }
+                (void)munmap(p + len, page - head); /* head < page: never empty */
                 (void)madvise(p, len, MADV_HUGEPAGE); /* a hint: refused, the pages stay 4 KiB */
                 *mapped = len;
                 return p; /* anonymous pages read as zero */
