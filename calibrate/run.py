@@ -253,20 +253,25 @@ def _isolated_fit(recs, seed):
     - subgrids:    the same grid with and without a 1x1x1 subgrid in every cell;
                    each entry adds one cell step and one subgrid entry, so
                    T_sub = (time(all) - time(none)) / subgrids - T_step (paired, per side).
+    - r = T_int / T_step: the first two fits' posterior samples paired at random (the
+                   suites are fitted apart, so their posteriors are independent).
     Returns (constants dict in the calibration's form, warning or None).
     """
     out, problems = {}, []
+    step_samples = int_samples = None
     try:
         design, _ = _suite_design(recs, "empty")
         res = _fit.fit(design, seed=seed, required=("rays", "steps"))
         out["t_setup_ns"] = calfile.constants_json(res)["t_setup_ns"]
         out["t_step_ns"] = calfile.constants_json(res)["t_step_ns"]
+        step_samples = res.samples[:, res.names.index("t_step_ns")]
     except (ValueError, _fit.ConvergenceError) as exc:
         problems.append(f"empty-grid suite: {exc}")
     try:
         design, _ = _suite_design(recs, "cell", fold_steps_into_rays=True)
         res = _fit.fit(design, seed=seed, required=("rays", "tests"))
         out["t_int_ns"] = calfile.constants_json(res)["t_int_ns"]
+        int_samples = res.samples[:, res.names.index("t_int_ns")]
     except (ValueError, _fit.ConvergenceError) as exc:
         problems.append(f"one-cell suite: {exc}")
     sub = [r for r in recs if r["kind"] == "isolated" and r["suite"] == "subgrid" and r["values_ns"]]
@@ -288,11 +293,14 @@ def _isolated_fit(recs, seed):
                                 "cost beyond a cell step (a busy host?); their median is used")
         elif d.size:
             problems.append("subgrid suite: entering a subgrid costs no more than a cell step here")
-    if "t_int_ns" in out and "t_step_ns" in out:
-        r = out["t_int_ns"]["median"] / out["t_step_ns"]["median"]
-        lo = out["t_int_ns"]["ci95"][0] / out["t_step_ns"]["ci95"][1]
-        hi = out["t_int_ns"]["ci95"][1] / out["t_step_ns"]["ci95"][0]
-        out["ratio"] = {"median": r, "ci68": [lo, hi], "ci95": [lo, hi]}
+    if step_samples is not None and int_samples is not None:
+        # The two suites are fitted apart, so their posteriors are independent: the ratio's
+        # posterior pairs their samples at random (both shuffled, the longer cut to the shorter).
+        rng = np.random.default_rng(seed)
+        n = min(step_samples.size, int_samples.size)
+        ratio = rng.permutation(int_samples)[:n] / rng.permutation(step_samples)[:n]
+        summary = _fit.summarize(ratio)
+        out["ratio"] = {"median": summary["median"], "ci68": list(summary["ci68"]), "ci95": list(summary["ci95"])}
     return out, ("isolated: " + "; ".join(problems)) if problems else None
 
 

@@ -190,6 +190,27 @@ def _planted_isolated_records(sub_diffs, t_setup=50.0, t_step=10.0, seed=0):
     return recs
 
 
+def test_isolated_ratio_is_the_ratio_of_the_two_posteriors():
+    """r from the empty-grid and one-cell suites: planted T_step = 10 and T_int = 2 ns are
+    recovered, and the 95% interval is that of the ratio of the two posteriors, inside the
+    product of the two intervals' ends (which is wider than 95%)."""
+    rng = np.random.default_rng(5)
+    recs = _planted_isolated_records([30.0, 40.0, 50.0, 60.0])
+    for k in (1, 4, 16, 64, 256):
+        rays = 2048
+        t = rays * (50.0 + 10.0) + rays * k * 2.0
+        recs.append(dict(kind="isolated", suite="cell", rays=rays, steps=rays, tests=rays * k, subgrids=0,
+                         values_ns=list(t * (1 + 0.01 * rng.standard_normal(5)))))
+    iso, _ = run._isolated_fit(recs, seed=0)
+    r = iso["ratio"]
+    assert r["median"] == pytest.approx(0.2, rel=0.03)
+    assert r["ci95"][0] < 0.2 < r["ci95"][1]
+    assert r["ci68"][0] > r["ci95"][0] and r["ci68"][1] < r["ci95"][1]
+    lo = iso["t_int_ns"]["ci95"][0] / iso["t_step_ns"]["ci95"][1]
+    hi = iso["t_int_ns"]["ci95"][1] / iso["t_step_ns"]["ci95"][0]
+    assert lo < r["ci95"][0] and r["ci95"][1] < hi
+
+
 def test_isolated_subgrid_cost_is_the_median_of_the_paired_differences():
     iso, warning = run._isolated_fit(_planted_isolated_records([30.0, 40.0, 50.0, 60.0]), seed=0)
     assert iso["t_step_ns"]["median"] == pytest.approx(10.0, rel=0.02)
