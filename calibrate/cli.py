@@ -214,6 +214,7 @@ def cmd_run(args) -> int:
                          cv_mare=None if math.isnan(result.cv_mare) else result.cv_mare,
                          cv_mare_by_rays=result.cv_mare_by_rays or {},
                          constants_by_rays=_constants_by_rays(cal),
+                         constants_isolated=cal.get("isolated") or {},
                          ratio_rel_width=result.ratio_rel_width, warnings=list(result.warnings), out=str(out)))
         return 0
     console.print(_constants_table(cal, f"calibration of this host ({cal['meta']['intersector']} intersector), "
@@ -224,6 +225,9 @@ def cmd_run(args) -> int:
         console.print(table)
         for name, entry in cal["by_rays"].items():
             console.print(_ratio_line(entry["constants"]["ratio"], f"{name} rays: r"))
+    if (cal.get("isolated") or {}).get("ratio"):
+        console.print(_ratio_line(cal["isolated"]["ratio"], "isolating suites (a step's and a test's marginal "
+                                                            "costs, in cache): r"))
     n_held = sum(1 for m in cal["measurements"] if m.get("held_back"))
     console.print(f"held-back configurations ({n_held}): median absolute relative error of predicted batch "
                   f"times {100 * result.holdout_mare:.1f}%"

@@ -67,6 +67,18 @@ MIN_BUDGET_S = FIT_RESERVE_S + 4.0
 #: it down (held-back error of isotropic rays 21% with 0.3, 14.5% with 0.7 on the same
 #: measurements; docs/calibration.md).
 PRIOR_FROM_ISOLATED = {"t_setup_ns": 0.3, "t_sub_ns": 0.7}
+#: The isolating suites' fits take the configurations whose rays are in the steady state.
+#: A walk's first steps cost more than its later ones, and a short triangle list's tests
+#: more than a long one's (branches that a long loop trains mispredict in a short one):
+#: on this host, 2026-12-02, 2^3-8^3 empty grids (2-8 steps a ray) cost 1-10 ns a ray above
+#: the line through 12^3-32^3, and lists of 16 triangles 9% above the line through 32-256;
+#: fitted through all of them, the isolated r's 95% half-width was 31-34%
+#: (docs/calibration.md, "The isolating suites' steady state").
+STEADY_STEPS_PER_RAY = 10.0
+STEADY_TESTS_PER_RAY = 32.0
+#: Fewest configurations an isolating fit takes (two for each of up to three constants):
+#: when fewer are steady, those with the longest walks or lists, and a warning.
+MIN_STEADY_CONFIGS = 6
 #: Partial-file format marker.
 PARTIAL_FORMAT = "gridcal-partial-run"
 PARTIAL_VERSION = 1
@@ -234,33 +246,63 @@ def _rel_width(result) -> float:
     return (r["ci95"][1] - r["ci95"][0]) / r["median"]
 
 
-def _suite_design(recs, suite, fold_steps_into_rays=False):
+def _suite_design(recs, suite, per_ray, threshold, aimed_column=False):
+    """The design of one isolating suite's steady-state configurations, and a note or None.
+
+    per_ray : the count ("steps" or "tests") whose mean per ray decides the steady state;
+    threshold : the least mean a configuration's rays must reach.  When fewer than
+    MIN_STEADY_CONFIGS do, the configurations with the most are used and the note says so.
+    aimed_column : for the one-cell suite, whose rays step once each (steps duplicate rays):
+    the ``steps`` column counts the aimed rays instead, so that a hitting ray's extra
+    per-ray cost (filling in its hit) gets its own constant and does not bend T_int.
+    """
     chosen = [r for r in recs if r["kind"] == "isolated" and r["suite"] == suite and r["values_ns"]]
     if not chosen:
         raise ValueError(f"no {suite} measurements")
-    design = {k: np.array([float(r[k]) for r in chosen]) for k in ("rays", "steps", "tests", "subgrids")}
-    if fold_steps_into_rays:  # one cell: every ray steps once, so steps duplicate rays
-        design["steps"] = np.zeros_like(design["steps"])
-    design["times_ns"] = [list(r["values_ns"]) for r in chosen]
-    return design, chosen
+    chosen.sort(key=lambda r: r[per_ray] / r["rays"])
+    steady = [r for r in chosen if r[per_ray] / r["rays"] >= threshold]
+    note = None
+    if len(steady) < MIN_STEADY_CONFIGS:
+        n_steady, steady = len(steady), chosen[-MIN_STEADY_CONFIGS:]
+        note = (f"{suite} suite: {n_steady} configurations reach {threshold:g} {per_ray} a ray; "
+                f"fitted on the {len(steady)} with the most (their rays may not be in the steady state)")
+    design = {k: np.array([float(r[k]) for r in steady]) for k in ("rays", "steps", "tests", "subgrids")}
+    if aimed_column:
+        design["steps"] = np.array([float(r["rays"]) if r.get("ray_set") == "aimed" else 0.0 for r in steady])
+    design["times_ns"] = [list(r["values_ns"]) for r in steady]
+    return design, note
+
+
+def fit_cell_suite(recs, seed):
+    """The one-cell suite's fit on its steady-state lists, the aimed rays' extra cost apart:
+    (:class:`calibrate.fit.FitResult` whose ``t_int_ns`` is T_int, note or None)."""
+    design, note = _suite_design(recs, "cell", "tests", STEADY_TESTS_PER_RAY, aimed_column=True)
+    return _fit.fit(design, seed=seed, required=("rays", "tests")), note
 
 
 def _isolated_fit(recs, seed):
-    """First estimates from the isolating suites, each fitted on its own.
+    """First estimates from the isolating suites, each fitted on its own, in the steady state.
 
-    - empty grids: batch = rays*T_setup + steps*T_step        -> T_setup, T_step
-    - one cell:    batch = rays*(T_setup + T_step) + tests*T_int -> T_int
+    - empty grids: batch = rays*T_setup + steps*T_step, on the grids whose rays take at least
+                   STEADY_STEPS_PER_RAY steps                       -> T_setup, T_step
+    - one cell:    batch = rays*a + aimed rays*b + tests*T_int, on the lists of at least
+                   STEADY_TESTS_PER_RAY triangles (a: set-up and the one step; b: what a
+                   hitting ray adds)                                -> T_int
     - subgrids:    the same grid with and without a 1x1x1 subgrid in every cell;
                    each entry adds one cell step and one subgrid entry, so
                    T_sub = (time(all) - time(none)) / subgrids - T_step (paired, per side).
     - r = T_int / T_step: the first two fits' posterior samples paired at random (the
                    suites are fitted apart, so their posteriors are independent).
-    Returns (constants dict in the calibration's form, warning or None).
+    The isolated constants are marginal costs: what one more step or test costs a ray
+    that is already walking or testing.  Returns (constants dict in the calibration's
+    form, warning or None).
     """
     out, problems = {}, []
     step_samples = int_samples = None
     try:
-        design, _ = _suite_design(recs, "empty")
+        design, note = _suite_design(recs, "empty", "steps", STEADY_STEPS_PER_RAY)
+        if note:
+            problems.append(note)
         res = _fit.fit(design, seed=seed, required=("rays", "steps"))
         out["t_setup_ns"] = calfile.constants_json(res)["t_setup_ns"]
         out["t_step_ns"] = calfile.constants_json(res)["t_step_ns"]
@@ -268,8 +310,9 @@ def _isolated_fit(recs, seed):
     except (ValueError, _fit.ConvergenceError) as exc:
         problems.append(f"empty-grid suite: {exc}")
     try:
-        design, _ = _suite_design(recs, "cell", fold_steps_into_rays=True)
-        res = _fit.fit(design, seed=seed, required=("rays", "tests"))
+        res, note = fit_cell_suite(recs, seed)
+        if note:
+            problems.append(note)
         out["t_int_ns"] = calfile.constants_json(res)["t_int_ns"]
         int_samples = res.samples[:, res.names.index("t_int_ns")]
     except (ValueError, _fit.ConvergenceError) as exc:

@@ -37,11 +37,17 @@ from .scenes import scattered_compact
 TIMING_CLOCK = "thread"
 #: Rays per batch in every configuration.
 RAYS_PER_BATCH = 2048
-#: Empty-grid resolutions (cells per axis) of the isolating step suite; at most 32^3
-#: cells (256 KiB), so the cells stay in cache and T_step is the step itself.
-EMPTY_GRID_SIDES = (1, 2, 3, 4, 6, 8, 12, 16, 24, 32)
-#: Triangles in the single cell of the isolating intersection suite.
-CELL_TRIANGLE_COUNTS = (1, 4, 16, 64, 256)
+#: Empty-grid resolutions (cells per axis) of the isolating step suite; at most 40^3
+#: cells (500 KiB, a quarter of this host's level-2 cache), so the cells stay in cache
+#: and T_step is the step itself (48^3 already costs 4% more a step here).  The
+#: isolated fit uses the sides whose rays walk in the steady state (at least
+#: ``calibrate.run.STEADY_STEPS_PER_RAY`` steps); the short walks show the transient.
+EMPTY_GRID_SIDES = (1, 2, 4, 8, 12, 16, 20, 24, 28, 32, 36, 40)
+#: Triangles in the single cell of the isolating intersection suite: the first k of one
+#: set of scattered triangles, so every list holds triangles of the same size and a
+#: test's outcome (hence its cost) is drawn from the same mix whatever k.  The isolated
+#: fit uses the lists of at least ``calibrate.run.STEADY_TESTS_PER_RAY`` triangles.
+CELL_TRIANGLE_COUNTS = (1, 16, 32, 48, 64, 96, 128, 160, 192, 224, 256)
 #: Top-level sides of the isolating subgrid suite.
 SUBGRID_SIDES = (2, 4, 8, 16)
 #: Built-in scenes of the in-context suite.
@@ -118,9 +124,11 @@ def isolated_configs(intersector: str, seed: int = 0) -> list[Config]:
         g = empty_grid(lo, hi, (m, m, m), intersector)
         out.append(_config(f"empty {m}^3", "isolated", "empty", "empty", _res_label((m, m, m)), intersector,
                            g, o, d, "isotropic"))
-    # one cell, k small triangles; isotropic rays mostly miss them, aimed rays hit one
+    # one cell, k small triangles (the first k of one scattered set, all of one size);
+    # isotropic rays mostly miss them, aimed rays hit one
+    pool_v, pool_f = scattered_compact(max(CELL_TRIANGLE_COUNTS), seed=seed + 7)
     for k in CELL_TRIANGLE_COUNTS:
-        v, f = scattered_compact(k, seed=seed + 7 + k)
+        v, f = pool_v[: 3 * k], pool_f[:k]
         scene = Scene(v, f, name=f"cell {k}")
         g = Grid.uniform(scene, (1, 1, 1), intersector)
         oi, di = isotropic(scene.box_lo, scene.box_hi, RAYS_PER_BATCH, seed + 1)

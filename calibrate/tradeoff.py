@@ -282,18 +282,11 @@ def intersector_costs(seed: int = 0, rounds: int = T_INT_ROUNDS, progress=None) 
         mine = {c.name: timings[f"{ix}: {c.name}"] for c in cs if f"{ix}: {c.name}" in timings}
         recs = _run.records(cs, mine, set())
         try:
-            design, _ = _run._suite_design(recs, "cell", fold_steps_into_rays=True)
-            res = _fit_cell(design, seed)
+            res = calfile.constants_json(_run.fit_cell_suite(recs, seed)[0])["t_int_ns"]
         except (ValueError, ConvergenceError) as exc:
             res = dict(error=f"T_int of the {ix} intersector could not be fitted: {exc}")
         out[ix] = res
     return out
-
-
-def _fit_cell(design, seed):
-    from .fit import fit
-
-    return calfile.constants_json(fit(design, seed=seed, required=("rays", "tests")))["t_int_ns"]
 
 
 # ---------------------------------------------------------------------------------------

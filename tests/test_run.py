@@ -20,8 +20,8 @@ from calibrate.protocol import Copies, MeasurementInterrupted
 @pytest.fixture
 def small_suite(monkeypatch):
     monkeypatch.setattr(suites, "RAYS_PER_BATCH", 256)
-    monkeypatch.setattr(suites, "EMPTY_GRID_SIDES", (1, 2, 4, 8, 16))
-    monkeypatch.setattr(suites, "CELL_TRIANGLE_COUNTS", (1, 8, 64))
+    monkeypatch.setattr(suites, "EMPTY_GRID_SIDES", (1, 12, 16, 20, 24, 28, 32))
+    monkeypatch.setattr(suites, "CELL_TRIANGLE_COUNTS", (1, 32, 64, 128))
     monkeypatch.setattr(suites, "SUBGRID_SIDES", (2, 4, 8))
     monkeypatch.setattr(suites, "CONTEXT_SCENES", ("cylinder196", "scattered-skinny"))
     monkeypatch.setattr(run, "MIN_VALUE_NS", 2_000_000)
@@ -170,13 +170,14 @@ def test_run_json_and_show(small_suite, tmp_path, capsys):
         assert (tmp_path / p).exists() or __import__("pathlib").Path(p).exists()
 
 
-def _planted_isolated_records(sub_diffs, t_setup=50.0, t_step=10.0, seed=0):
-    """Isolating-suite records with planted times: empty grids exact, subgrid pairs given."""
+def _planted_isolated_records(sub_diffs, t_setup=50.0, t_step=10.0, seed=0, transient=0.0):
+    """Isolating-suite records with planted times: empty grids (about 1.5 side steps a ray; a
+    walk of fewer than 10 steps costs ``transient`` ns more, as short walks do), subgrid pairs given."""
     rng = np.random.default_rng(seed)
     recs = []
-    for side in (1, 2, 4, 8, 16):
+    for side in (1, 2, 4, 8, 12, 16, 20, 24, 28):
         rays, steps = 2048, int(2048 * 1.5 * side)
-        t = rays * t_setup + steps * t_step
+        t = rays * t_setup + steps * t_step + (rays * transient if steps < 10 * rays else 0.0)
         recs.append(dict(kind="isolated", suite="empty", rays=rays, steps=steps, tests=0, subgrids=0,
                          values_ns=list(t * (1 + 0.002 * rng.standard_normal(5)))))
     for side, diff in zip((2, 4, 8, 16), sub_diffs, strict=True):
@@ -190,18 +191,28 @@ def _planted_isolated_records(sub_diffs, t_setup=50.0, t_step=10.0, seed=0):
     return recs
 
 
+def _planted_cell_records(t_int=2.0, per_ray=60.0, aimed_extra=25.0, short_list_extra=0.0, seed=5,
+                          counts=(1, 16, 32, 64, 128, 256)):
+    """One-cell records: rays that miss and rays aimed at a triangle (``aimed_extra`` ns more a
+    ray), k tests a ray; a list shorter than 32 costs ``short_list_extra`` ns a test more."""
+    rng = np.random.default_rng(seed)
+    recs = []
+    for k in counts:
+        for ray_set, extra in (("isotropic", 0.0), ("aimed", aimed_extra)):
+            rays = 2048
+            t = rays * (per_ray + extra) + rays * k * (t_int + (short_list_extra if k < 32 else 0.0))
+            recs.append(dict(kind="isolated", suite="cell", rays=rays, steps=rays, tests=rays * k, subgrids=0,
+                             ray_set=ray_set, values_ns=list(t * (1 + 0.01 * rng.standard_normal(5)))))
+    return recs
+
+
 def test_isolated_ratio_is_the_ratio_of_the_two_posteriors():
     """r from the empty-grid and one-cell suites: planted T_step = 10 and T_int = 2 ns are
     recovered, and the 95% interval is that of the ratio of the two posteriors, inside the
     product of the two intervals' ends (which is wider than 95%)."""
-    rng = np.random.default_rng(5)
-    recs = _planted_isolated_records([30.0, 40.0, 50.0, 60.0])
-    for k in (1, 4, 16, 64, 256):
-        rays = 2048
-        t = rays * (50.0 + 10.0) + rays * k * 2.0
-        recs.append(dict(kind="isolated", suite="cell", rays=rays, steps=rays, tests=rays * k, subgrids=0,
-                         values_ns=list(t * (1 + 0.01 * rng.standard_normal(5)))))
-    iso, _ = run._isolated_fit(recs, seed=0)
+    recs = _planted_isolated_records([30.0, 40.0, 50.0, 60.0]) + _planted_cell_records()
+    iso, warning = run._isolated_fit(recs, seed=0)
+    assert warning is None
     r = iso["ratio"]
     assert r["median"] == pytest.approx(0.2, rel=0.03)
     assert r["ci95"][0] < 0.2 < r["ci95"][1]
@@ -209,6 +220,35 @@ def test_isolated_ratio_is_the_ratio_of_the_two_posteriors():
     lo = iso["t_int_ns"]["ci95"][0] / iso["t_step_ns"]["ci95"][1]
     hi = iso["t_int_ns"]["ci95"][1] / iso["t_step_ns"]["ci95"][0]
     assert lo < r["ci95"][0] and r["ci95"][1] < hi
+
+
+def test_isolated_constants_are_the_steady_states_marginal_costs():
+    """Short walks and short lists cost more per step and test (planted: 30 ns a ray on walks of
+    fewer than 10 steps, 1 ns a test on lists of fewer than 32), and aimed rays 25 ns more a ray:
+    the isolated fit recovers the planted marginal costs (T_step 10, T_int 2, r 0.2) within 2%,
+    with r's 95% interval covering 0.2 and narrower than 10% either side. Fitted through every
+    configuration with one intercept, as before, T_step came out 8.8 [8.1, 9.6] (the truth outside
+    its interval), T_setup 82 and r 0.222 [0.190, 0.260]."""
+    recs = (_planted_isolated_records([30.0, 40.0, 50.0, 60.0], transient=30.0)
+            + _planted_cell_records(short_list_extra=1.0))
+    iso, warning = run._isolated_fit(recs, seed=0)
+    assert warning is None
+    assert iso["t_step_ns"]["median"] == pytest.approx(10.0, rel=0.02)
+    assert iso["t_setup_ns"]["median"] == pytest.approx(50.0, rel=0.05)
+    assert iso["t_int_ns"]["median"] == pytest.approx(2.0, rel=0.02)
+    r = iso["ratio"]
+    assert r["ci95"][0] < 0.2 < r["ci95"][1]
+    assert r["ci95"][1] - r["ci95"][0] < 0.2 * r["median"]
+
+
+def test_too_few_steady_configurations_fit_the_longest_and_say_so():
+    recs = _planted_isolated_records([30.0, 40.0, 50.0, 60.0])
+    recs = [r for r in recs if r["suite"] != "empty" or r["steps"] < 20 * r["rays"]]  # longest walk: 18 steps
+    recs += _planted_cell_records(counts=(1, 4, 8, 16, 32))  # two lists of 32: one hit, one miss
+    iso, warning = run._isolated_fit(recs, seed=0)
+    assert "t_step_ns" in iso and "t_int_ns" in iso
+    assert "empty suite: 2 configurations reach 10 steps a ray" in warning
+    assert "cell suite: 2 configurations reach 32 tests a ray" in warning
 
 
 def test_isolated_subgrid_cost_is_the_median_of_the_paired_differences():
