@@ -279,7 +279,7 @@ def cmd_show(args) -> int:
         from ._io import check_writable
         from .plots import calibration_plots, plot_paths
 
-        for path in plot_paths(Path(args.plot)):  # both, before drawing: never one plot of two
+        for path in plot_paths(Path(args.plot)):  # all, before drawing: never some plots of three
             check_writable(path)
         written = calibration_plots(cal, Path(args.plot))
     else:
@@ -377,9 +377,9 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--seed", type=seed_number, default=0)
     sp.set_defaults(func=cmd_fit)
 
-    sp = verb("show", "print a calibration's constants; --plot writes a corner plot and residuals")
+    sp = verb("show", "print a calibration's constants; --plot writes a corner plot, residuals and the isolating suites")
     sp.add_argument("file", nargs="?", default=DEFAULT_CALIBRATION)
-    sp.add_argument("--plot", metavar="PREFIX", help="write PREFIX-corner.png and PREFIX-residuals.png")
+    sp.add_argument("--plot", metavar="PREFIX", help="write PREFIX-corner.png, PREFIX-residuals.png and PREFIX-isolated.png")
     sp.set_defaults(func=cmd_show)
 
     sp = verb("scenes", "list the built-in scenes with their statistics")

@@ -1,4 +1,5 @@
-"""Pictures of a calibration: the posterior's corner plot and the fit's residuals.
+"""Pictures of a calibration: the posterior's corner plot, the fit's residuals, and the
+isolating suites with their steady-state lines.
 
 Written with matplotlib's Agg backend (no display needed), atomically: each
 figure is rendered to memory and then written with a temp file and a rename.
@@ -117,14 +118,88 @@ def residuals(cal: dict, path: Path) -> Path:
     return out
 
 
-def plot_paths(prefix: Path) -> tuple[Path, Path]:
-    """The two files :func:`calibration_plots` writes for ``prefix``: (corner, residuals)."""
+def _isolated_points(cal: dict, suite: str, per_ray: str):
+    """(count per ray, ns per ray, MAD ns per ray, ray set) of one isolating suite's measured records."""
+    out = []
+    for m in cal["measurements"]:
+        if m["kind"] == "isolated" and m.get("suite") == suite and m["values_ns"] and m["rays"] > 0:
+            v = np.asarray(m["values_ns"], dtype=float)
+            med = float(np.median(v))
+            out.append((m[per_ray] / m["rays"], med / m["rays"], float(np.median(np.abs(v - med))) / m["rays"],
+                        str(m.get("ray_set") or "")))
+    return sorted(out)
+
+
+def isolated(cal: dict, path: Path) -> Path:
+    """The isolating suites per ray: empty grids against steps, one cell against tests.
+
+    Filled points are the steady-state configurations the isolated fit uses (at least
+    ``calibrate.run.STEADY_STEPS_PER_RAY`` steps or ``STEADY_TESTS_PER_RAY`` tests a ray),
+    open ones the short walks and lists it leaves out.  The line on the left is the fit,
+    T_setup + T_step * steps; on the right each ray set's line has the fitted slope T_int
+    through the median of its steady points (the intercepts are not part of the file).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .run import STEADY_STEPS_PER_RAY, STEADY_TESTS_PER_RAY
+
+    iso = cal.get("isolated") or {}
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    panels = ((axes[0], "empty", "steps", STEADY_STEPS_PER_RAY, "cells stepped per ray (empty grids)"),
+              (axes[1], "cell", "tests", STEADY_TESTS_PER_RAY, "triangle tests per ray (one cell)"))
+    colours = {"isotropic": "tab:blue", "aimed": "tab:orange"}
+    for ax, suite, per_ray, threshold, label in panels:
+        pts = _isolated_points(cal, suite, per_ray)
+        ax.set_xlabel(label)
+        if not pts:
+            ax.text(0.5, 0.5, "no measurements", ha="center", va="center", transform=ax.transAxes)
+            continue
+        for ray_set in sorted({p[3] for p in pts}):
+            mine = [p for p in pts if p[3] == ray_set]
+            x = np.array([p[0] for p in mine])
+            y = np.array([p[1] for p in mine])
+            err = np.array([p[2] for p in mine])
+            steady = x >= threshold
+            colour = colours.get(ray_set, "0.3")
+            name = "missing rays" if (suite == "cell" and ray_set == "isotropic") else (
+                "aimed rays" if ray_set == "aimed" else "isotropic rays")
+            ax.errorbar(x[steady], y[steady], yerr=err[steady], fmt="o", ms=4, color=colour,
+                        label=f"{name}, fitted")
+            ax.errorbar(x[~steady], y[~steady], yerr=err[~steady], fmt="o", ms=4, mfc="none", color=colour,
+                        label=f"{name}, short (left out)")
+            xs = np.linspace(0.0, float(x.max()), 50)
+            if suite == "empty" and iso.get("t_step_ns") and iso.get("t_setup_ns"):
+                ax.plot(xs, iso["t_setup_ns"]["median"] + iso["t_step_ns"]["median"] * xs, "-", lw=1, color=colour,
+                        label=f"T_setup + T_step x steps, T_step = {iso['t_step_ns']['median']:.3g} ns")
+            elif suite == "cell" and iso.get("t_int_ns") and steady.any():
+                slope = iso["t_int_ns"]["median"]
+                base = float(np.median(y[steady] - slope * x[steady]))
+                ax.plot(xs, base + slope * xs, "-", lw=1, color=colour,
+                        label=f"slope T_int = {slope:.3g} ns" if ray_set == "isotropic" else None)
+        ax.set_xlim(left=0.0)
+        ax.set_ylim(bottom=0.0)
+        ax.legend(fontsize="x-small")
+    axes[0].set_ylabel("ns per ray")
+    r = iso.get("ratio")
+    fig.suptitle("isolating suites: marginal costs in cache"
+                 + (f" (r = {r['median']:.3g}, 95% [{r['ci95'][0]:.3g}, {r['ci95'][1]:.3g}])" if r else ""))
+    out = _save(fig, path)
+    plt.close(fig)
+    return out
+
+
+def plot_paths(prefix: Path) -> tuple[Path, Path, Path]:
+    """The files :func:`calibration_plots` writes for ``prefix``: (corner, residuals, isolated)."""
     prefix = Path(prefix)
     base = prefix.name[:-4] if prefix.suffix == ".png" else prefix.name
-    return prefix.with_name(base + "-corner.png"), prefix.with_name(base + "-residuals.png")
+    return (prefix.with_name(base + "-corner.png"), prefix.with_name(base + "-residuals.png"),
+            prefix.with_name(base + "-isolated.png"))
 
 
 def calibration_plots(cal: dict, prefix: Path) -> list[Path]:
-    """Write PREFIX-corner.png and PREFIX-residuals.png; returns their paths."""
-    corner_path, residuals_path = plot_paths(prefix)
-    return [corner(cal, corner_path), residuals(cal, residuals_path)]
+    """Write PREFIX-corner.png, PREFIX-residuals.png and PREFIX-isolated.png; returns their paths."""
+    corner_path, residuals_path, isolated_path = plot_paths(prefix)
+    return [corner(cal, corner_path), residuals(cal, residuals_path), isolated(cal, isolated_path)]

@@ -146,7 +146,7 @@ def fixture_files() -> dict[str, bytes]:
         "locked.json": EXISTING,  # made read-only
         "locked.h": EXISTING,  # made read-only
         "locked.png": EXISTING,  # made read-only
-        "fig-residuals.png": EXISTING,  # made read-only: the second of show --plot's two files
+        "fig-residuals.png": EXISTING,  # made read-only: the second of show --plot's three files
         "ro/keep.txt": EXISTING,  # ro/ is made read-only
         "adir/keep.txt": EXISTING,
     }
@@ -503,6 +503,7 @@ def row_environment(workdir: Path):
             stack.enter_context(mock.patch("calibrate.fit.fit", _refuse("fitting")))
             stack.enter_context(mock.patch("calibrate.plots.corner", _refuse("plotting")))
             stack.enter_context(mock.patch("calibrate.plots.residuals", _refuse("plotting")))
+            stack.enter_context(mock.patch("calibrate.plots.isolated", _refuse("plotting")))
             for name in ("intersect", "count", "bench"):  # tracing rays (after the API's own checks)
                 stack.enter_context(mock.patch.object(_grid_module._kernels, name, _refuse("tracing")))
             if IS_ROOT:

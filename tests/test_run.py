@@ -8,6 +8,7 @@ never a speed.
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -166,8 +167,9 @@ def test_run_json_and_show(small_suite, tmp_path, capsys):
     assert main(["show", str(out), "--json", "--plot", str(tmp_path / "fig")]) == 0
     shown = json.loads(capsys.readouterr().out)
     assert shown["constants"] == calfile.load(out)["constants"]
+    assert [Path(p).name for p in shown["plots"]] == ["fig-corner.png", "fig-residuals.png", "fig-isolated.png"]
     for p in shown["plots"]:
-        assert (tmp_path / p).exists() or __import__("pathlib").Path(p).exists()
+        assert Path(p).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def _planted_isolated_records(sub_diffs, t_setup=50.0, t_step=10.0, seed=0, transient=0.0):
@@ -239,6 +241,17 @@ def test_isolated_constants_are_the_steady_states_marginal_costs():
     r = iso["ratio"]
     assert r["ci95"][0] < 0.2 < r["ci95"][1]
     assert r["ci95"][1] - r["ci95"][0] < 0.2 * r["median"]
+
+
+def test_isolated_plot_draws_the_suites_and_copes_without_them(tmp_path):
+    from calibrate import plots
+
+    recs = _planted_isolated_records([30.0, 40.0, 50.0, 60.0]) + _planted_cell_records()
+    iso, _ = run._isolated_fit(recs, seed=0)
+    for name, cal in (("with", dict(measurements=recs, isolated=iso)),
+                      ("without", dict(measurements=[], isolated={}))):
+        out = plots.isolated(cal, tmp_path / f"{name}.png")
+        assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_too_few_steady_configurations_fit_the_longest_and_say_so():
