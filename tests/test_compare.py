@@ -10,10 +10,11 @@ import pytest
 from calibrate import cli
 from calibrate.compare import BASELINE_MARKERS, compare_scene, sweep_factors
 
-#: The last calibrated r of the reference host; cylinder196's measured optimum lies well
-#: inside 1/4x..4x of its prediction for any plausible r (steps and tests are both large
-#: at either end of the sweep on 196 long triangles).
-RATIO = 0.926
+#: About the reference host's calibrated r (0.14-0.22 since the AVX2 tests and the masked
+#: step; docs/calibration.md), so that cylinder196's measured optimum lies mid-sweep: with
+#: the old kernels' 0.926 the prediction was 1.5-2 times too fine per axis and the minimum
+#: sat at the sweep's second point, 7% below its first (the test flaked once under load).
+RATIO = 0.2
 SHORT = ["--ratio", str(RATIO), "--points", "7", "--ray-count", "512", "--rounds", "3", "--min-time", "0.002"]
 SCENE_KEYS = ("penalty", "predicted_resolution", "best_measured_resolution", "baselines", "points", "curves",
               "predicted_time_ns", "best_measured_time_ns", "predicted_levels", "best_measured_levels")
