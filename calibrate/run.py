@@ -70,8 +70,9 @@ PRIOR_FROM_ISOLATED = {"t_setup_ns": 0.3, "t_sub_ns": 0.7}
 #: The isolating suites' fits take the configurations whose rays are in the steady state.
 #: A walk's first steps cost more than its later ones, and a short triangle list's tests
 #: more than a long one's (branches that a long loop trains mispredict in a short one):
-#: on this host, 2026-12-02, 2^3-8^3 empty grids (2-8 steps a ray) cost 1-10 ns a ray above
-#: the line through 12^3-32^3, and lists of 16 triangles 9% above the line through 32-256;
+#: on this host, 2026-12-02, 4^3 and 8^3 empty grids (4 and 8 steps a ray) cost 10% and 3%
+#: above the line through 12^3-32^3 (1^3, one step and a predictable exit, 28% below it),
+#: and lists of 16 triangles 9% above the line through 32-256;
 #: fitted through all of them, the isolated r's 95% half-width was 31-34%
 #: (docs/calibration.md, "The isolating suites' steady state").
 STEADY_STEPS_PER_RAY = 10.0
