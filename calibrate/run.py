@@ -274,11 +274,36 @@ def _suite_design(recs, suite, per_ray, threshold, aimed_column=False):
     return design, note
 
 
+#: The one-cell suite's designs, tried in turn until one fits: (least tests a ray, aimed
+#: rays' extra cost a constant of its own).  The first is the steady state; the others are
+#: for an intersector whose steady lists do not draw a line with a positive per-ray cost
+#: (Moller-Trumbore on this host: 15 ns a test from 16 to 32 triangles, 17.5 from 128 to
+#: 256, so the line through the long lists meets zero tests at -80 ns, and its aimed rays
+#: cost no more than its missing ones).
+CELL_SUITE_DESIGNS = ((STEADY_TESTS_PER_RAY, True), (STEADY_TESTS_PER_RAY, False), (0.0, True), (0.0, False))
+
+
 def fit_cell_suite(recs, seed):
-    """The one-cell suite's fit on its steady-state lists, the aimed rays' extra cost apart:
-    (:class:`calibrate.fit.FitResult` whose ``t_int_ns`` is T_int, note or None)."""
-    design, note = _suite_design(recs, "cell", "tests", STEADY_TESTS_PER_RAY, aimed_column=True)
-    return _fit.fit(design, seed=seed, required=("rays", "tests")), note
+    """The one-cell suite's fit: on its steady-state lists with the aimed rays' extra cost
+    apart when that fits, else the next of CELL_SUITE_DESIGNS that does (the note says which
+    and why).  Returns (:class:`calibrate.fit.FitResult` whose ``t_int_ns`` is T_int, note or
+    None); raises the first design's error when none fits."""
+    first_error, notes = None, []
+    for threshold, aimed in CELL_SUITE_DESIGNS:
+        design, note = _suite_design(recs, "cell", "tests", threshold, aimed_column=aimed)
+        if not aimed:
+            design["steps"] = np.zeros_like(design["steps"])  # each ray steps once: steps are rays
+        try:
+            res = _fit.fit(design, seed=seed, required=("rays", "tests"))
+        except (ValueError, _fit.ConvergenceError) as exc:
+            first_error = first_error or exc
+            notes.append(f"lists of {threshold:g}+ triangles{', aimed rays apart' if aimed else ''}: {exc}")
+            continue
+        if notes:
+            how = f"lists of {threshold:g}+ triangles" + (", aimed rays apart" if aimed else ", one per-ray cost")
+            note = "; ".join(([note] if note else []) + [f"cell suite fitted on {how}, since " + "; ".join(notes)])
+        return res, note
+    raise first_error
 
 
 def _isolated_fit(recs, seed):

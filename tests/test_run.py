@@ -254,6 +254,27 @@ def test_isolated_plot_draws_the_suites_and_copes_without_them(tmp_path):
         assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_a_cell_suite_whose_steady_line_meets_zero_below_zero_falls_back_and_says_so():
+    """Moller-Trumbore-like timings: a test costs 15 ns in short lists and up to 17 in long
+    ones, aimed rays cost no more than missing ones, so the line through the long lists has
+    a negative per-ray cost and no aimed-ray constant; the fit falls back to every list with
+    one per-ray cost, says so, and T_int lies within the planted per-test costs."""
+    rng = np.random.default_rng(7)
+    recs = []
+    for k in (1, 16, 32, 64, 128, 256):
+        for ray_set in ("isotropic", "aimed"):
+            t = 2048 * (60.0 + k * (15.0 + 2.0 * k / 256))
+            recs.append(dict(kind="isolated", suite="cell", rays=2048, steps=2048, tests=2048 * k, subgrids=0,
+                             ray_set=ray_set, values_ns=list(t * (1 + 0.005 * rng.standard_normal(5)))))
+    res, note = run.fit_cell_suite(recs, seed=0)
+    assert 15.0 < res.constants["t_int_ns"]["median"] < 17.0
+    assert "cell suite fitted on lists of 0+ triangles, one per-ray cost" in note
+    assert "lists of 32+ triangles, aimed rays apart" in note
+    # the watertight-like planted suite fits its steady state at once
+    res, note = run.fit_cell_suite(_planted_cell_records(short_list_extra=1.0), seed=0)
+    assert note is None and res.constants["t_int_ns"]["median"] == pytest.approx(2.0, rel=0.02)
+
+
 def test_too_few_steady_configurations_fit_the_longest_and_say_so():
     recs = _planted_isolated_records([30.0, 40.0, 50.0, 60.0])
     recs = [r for r in recs if r["suite"] != "empty" or r["steps"] < 20 * r["rays"]]  # longest walk: 18 steps
