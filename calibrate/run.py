@@ -289,6 +289,7 @@ def fit_cell_suite(recs, seed):
     and why).  Returns (:class:`calibrate.fit.FitResult` whose ``t_int_ns`` is T_int, note or
     None); raises the first design's error when none fits."""
     first_error, notes = None, []
+    lists = lambda threshold: "every list" if threshold <= 0 else f"lists of {threshold:g}+ triangles"  # noqa: E731
     for threshold, aimed in CELL_SUITE_DESIGNS:
         design, note = _suite_design(recs, "cell", "tests", threshold, aimed_column=aimed)
         if not aimed:
@@ -297,10 +298,10 @@ def fit_cell_suite(recs, seed):
             res = _fit.fit(design, seed=seed, required=("rays", "tests"))
         except (ValueError, _fit.ConvergenceError) as exc:
             first_error = first_error or exc
-            notes.append(f"lists of {threshold:g}+ triangles{', aimed rays apart' if aimed else ''}: {exc}")
+            notes.append(f"{lists(threshold)}{', aimed rays apart' if aimed else ''}: {exc}")
             continue
         if notes:
-            how = f"lists of {threshold:g}+ triangles" + (", aimed rays apart" if aimed else ", one per-ray cost")
+            how = lists(threshold) + (", aimed rays apart" if aimed else ", one per-ray cost")
             note = "; ".join(([note] if note else []) + [f"cell suite fitted on {how}, since " + "; ".join(notes)])
         return res, note
     raise first_error

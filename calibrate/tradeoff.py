@@ -515,8 +515,10 @@ def plot(report: dict, path) -> Path:
             top = c["median"]
         inside = top > 0.25 * tallest  # a short bar gets its label above it
         ax.annotate(f"{r['leaks_per_million']:,.0f} leaks\nper million",
-                    (xi, 0.5 * top if inside else (c["ci95"][1] if c is not None else 0.0) + 0.03 * tallest),
+                    (xi, 0.5 * top if inside else (c["ci95"][1] + 0.03 * tallest if c is not None
+                                                  else 0.12 * tallest)),
                     ha="center", va="center" if inside else "bottom", fontsize=8, color="w" if inside else "k")
+    ax.set_xlim(-0.6, len(ix) - 0.4)  # room for a label where no bar was drawn
     ax.set_xticks(x, [r["intersector"] for r in ix])
     ax.set_ylabel("T_int (ns per test, 95% interval)")
     ax.set_title("intersector -> T_int and leaks")

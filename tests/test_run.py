@@ -268,7 +268,7 @@ def test_a_cell_suite_whose_steady_line_meets_zero_below_zero_falls_back_and_say
                              ray_set=ray_set, values_ns=list(t * (1 + 0.005 * rng.standard_normal(5)))))
     res, note = run.fit_cell_suite(recs, seed=0)
     assert 15.0 < res.constants["t_int_ns"]["median"] < 17.0
-    assert "cell suite fitted on lists of 0+ triangles, one per-ray cost" in note
+    assert "cell suite fitted on every list, one per-ray cost" in note
     assert "lists of 32+ triangles, aimed rays apart" in note
     # the watertight-like planted suite fits its steady state at once
     res, note = run.fit_cell_suite(_planted_cell_records(short_list_extra=1.0), seed=0)
