@@ -52,8 +52,25 @@ PRIME_EACH_VALUE = True
 #: Fraction of in-context configurations held back from the fit to test its predictions.
 HOLDOUT_FRACTION = 0.2
 #: Share of the budget kept for fitting after the last stage (the pooled fit, then one
-#: per ray set).
+#: per ray set): the least kept; a slower host keeps more (FIT_RESERVE_MARGIN, below).
 FIT_RESERVE_S = 9.0
+#: The time kept after the last stage is estimated from the stage before it, so that a host
+#: whose fits are slow (a noisy one: longer chains) still ends within the budget: the next
+#: stage's fits take up to FIT_RESERVE_MARGIN times the last stage's (more values, the same
+#: chains), and fitting each ray set alone and cross-validating take up to
+#: POST_FIT_PER_POOLED times the last pooled fit (two fits of half the data each, then
+#: CV_FOLDS maxima per set).  On an AMD EPYC host, 2026-12-03: post-fit 2.7-4.2 times the
+#: pooled fit; an isolating fit that ran to its cap took 9.4 s of a 9 s reserve, and the
+#: run lasted 63.5 s (docs/calibration.md, "A noisy host").
+FIT_RESERVE_MARGIN = 1.2
+POST_FIT_PER_POOLED = 4.0
+#: Cap on the chain of an isolating suite's fit (two or three constants; a steady design
+#: converges in 1,200-1,500 steps): a chain that wants more is an interval the noise has
+#: made too wide, and it is reported as not fitted instead of taking the run's budget.
+ISOLATED_MAX_STEPS = 8000
+#: The isolating fits stop sampling as soon as a constant's 95% interval spans more than
+#: fit.MAX_CI95_DECADES (the in-context fit's optional terms do the same).
+ISOLATED_FAIL_FAST = ("t_setup_ns", "t_step_ns", "t_int_ns")
 #: Shortest budget accepted, seconds: the fitting reserve plus a few seconds of measuring
 #: (the first stage times every configuration FIRST_ROUNDS times).
 MIN_BUDGET_S = FIT_RESERVE_S + 4.0
@@ -247,6 +264,14 @@ def _rel_width(result) -> float:
     return (r["ci95"][1] - r["ci95"][0]) / r["median"]
 
 
+def fit_reserve(stage_fit_s: float, pooled_fit_s: float) -> float:
+    """Seconds to keep after the last stage's measuring, from the last stage's fitting time
+    (``stage_fit_s``: the isolating suites and the pooled fit) and its pooled fit's alone:
+    the next stage's fits, then each ray set's and the cross-validation; never less than
+    FIT_RESERVE_S."""
+    return max(FIT_RESERVE_S, FIT_RESERVE_MARGIN * stage_fit_s + POST_FIT_PER_POOLED * pooled_fit_s)
+
+
 def _suite_design(recs, suite, per_ray, threshold, aimed_column=False):
     """The design of one isolating suite's steady-state configurations, and a note or None.
 
@@ -295,7 +320,8 @@ def fit_cell_suite(recs, seed):
         if not aimed:
             design["steps"] = np.zeros_like(design["steps"])  # each ray steps once: steps are rays
         try:
-            res = _fit.fit(design, seed=seed, required=("rays", "tests"))
+            res = _fit.fit(design, seed=seed, required=("rays", "tests"), max_steps=ISOLATED_MAX_STEPS,
+                           fail_fast=ISOLATED_FAIL_FAST)
         except (ValueError, _fit.ConvergenceError) as exc:
             first_error = first_error or exc
             notes.append(f"{lists(threshold)}{', aimed rays apart' if aimed else ''}: {exc}")
@@ -303,6 +329,35 @@ def fit_cell_suite(recs, seed):
         if notes:
             how = lists(threshold) + (", aimed rays apart" if aimed else ", one per-ray cost")
             note = "; ".join(([note] if note else []) + [f"cell suite fitted on {how}, since " + "; ".join(notes)])
+        return res, note
+    raise first_error
+
+
+#: The empty-grid suite's designs, tried in turn until one fits (least steps a ray): the
+#: steady walks, then every walk.  On a noisy host the steady walks (12 to 39 steps a ray)
+#: can leave the per-ray cost unidentified (an AMD EPYC host, 2026-12-03, values spread
+#: 10-24%: T_setup's 95% interval [0.09, 108] ns); the short walks pin it, at the price of
+#: their transient in T_step.
+EMPTY_SUITE_DESIGNS = (STEADY_STEPS_PER_RAY, 0.0)
+
+
+def fit_empty_suite(recs, seed):
+    """The empty-grid suite's fit: on its steady walks when that fits, else on every walk (the
+    note says so and why).  Returns (:class:`calibrate.fit.FitResult` with T_setup and T_step,
+    note or None); raises the first design's error when none fits."""
+    first_error, notes = None, []
+    for threshold in EMPTY_SUITE_DESIGNS:
+        design, note = _suite_design(recs, "empty", "steps", threshold)
+        try:
+            res = _fit.fit(design, seed=seed, required=("rays", "steps"), max_steps=ISOLATED_MAX_STEPS,
+                           fail_fast=ISOLATED_FAIL_FAST)
+        except (ValueError, _fit.ConvergenceError) as exc:
+            first_error = first_error or exc
+            notes.append(f"walks of {threshold:g}+ steps: {exc}")
+            continue
+        if notes:
+            note = "; ".join(([note] if note else [])
+                             + ["empty-grid suite fitted on every walk, since " + "; ".join(notes)])
         return res, note
     raise first_error
 
@@ -327,10 +382,9 @@ def _isolated_fit(recs, seed):
     out, problems = {}, []
     step_samples = int_samples = None
     try:
-        design, note = _suite_design(recs, "empty", "steps", STEADY_STEPS_PER_RAY)
+        res, note = fit_empty_suite(recs, seed)
         if note:
             problems.append(note)
-        res = _fit.fit(design, seed=seed, required=("rays", "steps"))
         out["t_setup_ns"] = calfile.constants_json(res)["t_setup_ns"]
         out["t_step_ns"] = calfile.constants_json(res)["t_step_ns"]
         step_samples = res.samples[:, res.names.index("t_step_ns")]
@@ -377,7 +431,7 @@ def _isolated_fit(recs, seed):
 def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
                     target_rel_width: float | None = DEFAULT_TARGET_REL_WIDTH,
                     intersector: str = "watertight", seed: int = 0, resume: bool = False,
-                    progress=None, status=None, on_stage=None) -> RunResult:
+                    progress=None, status=None, on_stage=None, started: float | None = None) -> RunResult:
     """Measure, fit, validate on held-back configurations, and save ``out`` atomically.
 
     progress(done, total, label) reports measuring; status(text) reports stages.
@@ -385,6 +439,8 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
     posterior a run stopping there would have); a true return value ends measuring
     there, as a reached target would (``calibrate tradeoff`` reads one long run's
     stages as the runs of shorter budgets).
+    started : ``time.monotonic()`` at which the budget began (the command line passes its
+    own start, so that the budget covers importing the fitting libraries); now when None.
     Raises UserError for bad arguments, MeasurementInterrupted (after saving the
     partial file) on Ctrl-C, and fit errors when the data cannot be fitted.
     """
@@ -405,7 +461,7 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
         raise UserError(f"{part}: no interrupted run to resume (run without --resume to start one)")
     check_writable(part)
     status = status or (lambda text: None)
-    t_start = time.monotonic()
+    t_start = time.monotonic() if started is None else float(started)
     deadline = t_start + budget_s
     warnings: list = []
 
@@ -421,12 +477,13 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
         result = None
         last_fit = None  # (stage, records, isolated, warning, result) of the last stage that fitted
         stage = 0
+        reserve = FIT_RESERVE_S  # kept for the fits after the last stage; re-estimated by each stage
         while True:
             stage += 1
             status(f"measuring stage {stage}: {len(configs)} configurations to {rounds} values each")
             try:
                 measure(runs, rng=rng, rounds=rounds, warmups=WARMUPS, min_value_ns=MIN_VALUE_NS,
-                        progress=progress, deadline=deadline - FIT_RESERVE_S, into=timings,
+                        progress=progress, deadline=deadline - reserve, into=timings,
                         prime=PRIME_EACH_VALUE)
             except MeasurementInterrupted:
                 _save_partial(part, seed, intersector, configs, timings)
@@ -434,11 +491,13 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
             _save_partial(part, seed, intersector, configs, timings)
             recs = records(configs, timings, held, cache)
             status("fitting")
+            fit_start = time.monotonic()
             isolated, iso_warning = _isolated_fit(recs, seed)
+            pooled_start = time.monotonic()
             try:
                 result = _fit_stage(recs, seed, isolated)
             except (ValueError, _fit.ConvergenceError) as exc:
-                if time.monotonic() < deadline - FIT_RESERVE_S:
+                if time.monotonic() < deadline - reserve:
                     rounds += STAGE_ROUNDS
                     continue
                 if last_fit is None:
@@ -453,13 +512,15 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
                                 f"fit and keeps the {n_kept} values it was made from (of {n_all} measured)")
                 break
             last_fit = (stage, recs, isolated, iso_warning, result)
+            fit_end = time.monotonic()
+            reserve = fit_reserve(fit_end - fit_start, fit_end - pooled_start)
             width = _rel_width(result)
             enough = target_rel_width is None or width <= target_rel_width
             if on_stage is not None and on_stage(Stage(
                     stage=stage, rounds=rounds, elapsed_s=time.monotonic() - t_start, result=result,
                     values=sum(len(m.values_ns) for m in timings.values()), ratio_rel_width=width)):
                 enough = True
-            if enough or time.monotonic() >= deadline - FIT_RESERVE_S:
+            if enough or time.monotonic() >= deadline - reserve:
                 if not enough:
                     warnings.append(f"budget spent: r's 95% interval is {100 * width:.1f}% of its median wide, "
                                     f"target {100 * target_rel_width:.1f}%")

@@ -351,3 +351,74 @@ def test_a_failed_last_stage_keeps_the_last_fit_that_worked(small_suite, tmp_pat
         "the file keeps the values the kept fit was made from"
     r_true = planted["tests"] / planted["steps"]
     assert cal["constants"]["ratio"]["ci95"][0] <= r_true <= cal["constants"]["ratio"]["ci95"][1]
+
+
+def test_an_empty_suite_too_noisy_for_its_steady_walks_falls_back_to_every_walk():
+    """Steady walks of 18 to 42 steps with 25% noise leave the per-ray cost unidentified (the
+    intercept is a small part of every such batch); the fit then takes the short walks too,
+    says why, and recovers the planted T_step = 10 and T_setup = 50 ns."""
+    rng = np.random.default_rng(3)
+    recs = []
+    for side in (1, 2, 4, 8, 12, 16, 20, 24, 28):
+        rays, steps = 2048, int(2048 * 1.5 * side)
+        t = rays * 50.0 + steps * 10.0
+        noise = 0.25 if steps >= 10 * rays else 0.005
+        recs.append(dict(kind="isolated", suite="empty", rays=rays, steps=steps, tests=0, subgrids=0,
+                         values_ns=list(t * np.exp(noise * rng.standard_normal(5)))))
+    with pytest.raises(ValueError, match="T_setup is not identified"):
+        design, _ = run._suite_design(recs, "empty", "steps", run.STEADY_STEPS_PER_RAY)
+        run._fit.fit(design, seed=0, required=("rays", "steps"), max_steps=run.ISOLATED_MAX_STEPS,
+                     fail_fast=run.ISOLATED_FAIL_FAST)
+    res, note = run.fit_empty_suite(recs, seed=0)
+    assert "empty-grid suite fitted on every walk, since walks of 10+ steps: T_setup is not identified" in note
+    assert res.constants["t_step_ns"]["median"] == pytest.approx(10.0, rel=0.05)
+    assert res.constants["t_setup_ns"]["median"] == pytest.approx(50.0, rel=0.1)
+    # quiet steady walks fit at once
+    res, note = run.fit_empty_suite(_planted_isolated_records([30.0, 40.0, 50.0, 60.0]), seed=0)
+    assert note is None and res.constants["t_step_ns"]["median"] == pytest.approx(10.0, rel=0.02)
+
+
+def test_fit_reserve_grows_with_the_last_stages_fitting_time():
+    assert run.fit_reserve(0.5, 0.2) == run.FIT_RESERVE_S
+    assert run.fit_reserve(10.0, 2.0) == pytest.approx(run.FIT_RESERVE_MARGIN * 10.0 + run.POST_FIT_PER_POOLED * 2.0)
+
+
+def test_slow_fits_end_measuring_earlier(small_suite, tmp_path, monkeypatch):
+    """A host whose fits are slow keeps more of the budget for them: the second stage stops
+    measuring at the budget less the reserve estimated from the first stage's fitting time."""
+    from calibrate.protocol import Measurement
+
+    configs = suites.isolated_configs("watertight", 0) + suites.context_configs("watertight", 0)
+    planted = {"rays": 50.0, "steps": 10.0, "tests": 4.0, "subgrids": 30.0}
+    truth = {c.name: sum(planted[k] * c.record()[k] for k in planted) for c in configs}
+    rng = np.random.default_rng(1)
+    clock = {"t": 0.0}
+    deadlines = []
+
+    class FakeTime:
+        @staticmethod
+        def monotonic():
+            return clock["t"]
+
+    def fake_measure(runs, *, rounds, into, deadline, **_):
+        deadlines.append(deadline)
+        for name in runs:
+            m = into.setdefault(name, Measurement(loops=1))
+            m.target_values = rounds
+            while len(m.values_ns) < rounds:
+                m.values_ns.append(float(truth[name] * np.exp(0.02 * rng.standard_normal())))
+        clock["t"] = 1.0 if len(deadlines) == 1 else deadline  # a later stage measures to its deadline
+
+    real_fit_stage = run._fit_stage
+
+    def slow_fit_stage(recs, seed, isolated):
+        clock["t"] += 10.0  # a pooled fit that takes 10 s
+        return real_fit_stage(recs, seed, isolated)
+
+    monkeypatch.setattr(run, "time", FakeTime)
+    monkeypatch.setattr(run, "measure", fake_measure)
+    monkeypatch.setattr(run, "_fit_stage", slow_fit_stage)
+    run.run_calibration(tmp_path / "cal.json", budget_s=120, target_rel_width=1e-9, seed=0)
+    reserve = run.fit_reserve(10.0, 10.0)
+    assert reserve > run.FIT_RESERVE_S
+    assert deadlines == [pytest.approx(120 - run.FIT_RESERVE_S), pytest.approx(120 - reserve)]
