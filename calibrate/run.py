@@ -30,7 +30,7 @@ from ._io import UserError, atomic_write_text, check_writable
 from ._grid import intersector_code
 from models.memory import lines_beyond_cache
 from .host import cache_bytes, fingerprint
-from .protocol import Measurement, MeasurementInterrupted, measure, pin_to_one_core
+from .protocol import REL_SPREAD_WARN, Measurement, MeasurementInterrupted, measure, pin_to_one_core
 
 #: Default wall-clock budget of a run, seconds.
 DEFAULT_BUDGET_S = 60.0
@@ -262,6 +262,21 @@ def _cross_validated(result, by_rays, recs, seed, priors):
 def _rel_width(result) -> float:
     r = result.constants["ratio"]
     return (r["ci95"][1] - r["ci95"][0]) / r["median"]
+
+
+def rel_spread(values_ns) -> float:
+    """A configuration's scaled MAD over its median (protocol.Measurement.rel_spread)."""
+    return Measurement(loops=1, values_ns=list(values_ns)).rel_spread
+
+
+def spread_summary(spreads, n_configs: int) -> str:
+    """One warning for every configuration whose values spread more than the protocol's
+    threshold (each keeps its own warning in the file's measurements): on a noisy host
+    most do, and a line each would bury the other warnings."""
+    s = np.sort(np.asarray(spreads, dtype=float))
+    return (f"large spread in {s.size} of {n_configs} configurations: scaled MAD {100 * s[0]:.0f}-{100 * s[-1]:.0f}% "
+            f"of the median (median {100 * float(np.median(s)):.0f}%; threshold {100 * REL_SPREAD_WARN:.0f}%); "
+            "the host may be busy or noisy (each configuration's warnings are in the file's measurements)")
 
 
 def fit_reserve(stage_fit_s: float, pooled_fit_s: float) -> float:
@@ -536,12 +551,18 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
         if iso_warning:
             warnings.append(iso_warning)
         cut = 0
+        spreads = []
         for r in recs:
             for w in r["warnings"]:
                 if "stopped early" in w:  # the budget's deadline, reported once below
                     cut += 1
                     continue
+                if w.startswith("large spread"):  # one line for all of them, below
+                    spreads.append(rel_spread(r["values_ns"]))
+                    continue
                 warnings.append(f"{r['name']}: {w}")
+        if spreads:
+            warnings.append(spread_summary(spreads, len(recs)))
         if cut:
             warnings.append(f"the budget ended the last stage early: {cut} configurations have fewer values "
                             "than the others (all are used)")

@@ -422,3 +422,11 @@ def test_slow_fits_end_measuring_earlier(small_suite, tmp_path, monkeypatch):
     reserve = run.fit_reserve(10.0, 10.0)
     assert reserve > run.FIT_RESERVE_S
     assert deadlines == [pytest.approx(120 - run.FIT_RESERVE_S), pytest.approx(120 - reserve)]
+
+
+def test_large_spreads_are_one_warning():
+    line = run.spread_summary([0.12, 0.30, 0.16], 40)
+    assert line.startswith("large spread in 3 of 40 configurations: scaled MAD 12-30% of the median (median 16%")
+    values = [100.0, 100.0, 130.0, 70.0, 100.0]  # MAD 0 about the median: spread 0
+    assert run.rel_spread(values) == 0.0
+    assert run.rel_spread([90.0, 100.0, 110.0]) == pytest.approx(1.482602218505602 * 10 / 100)
