@@ -564,8 +564,9 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
         if spreads:
             warnings.append(spread_summary(spreads, len(recs)))
         if cut:
-            warnings.append(f"the budget ended the last stage early: {cut} configurations have fewer values "
-                            "than the others (all are used)")
+            lengths = sorted(len(r["values_ns"]) for r in recs)
+            warnings.append(f"the budget ended the last stage early: {cut} of {len(recs)} configurations have "
+                            f"fewer than the {rounds} values it asked for ({lengths[0]}-{lengths[-1]}; all are used)")
         wall = time.monotonic() - t_start
         meta = dict(tool="gridcal", budget_s=budget_s, target_rel_width=target_rel_width, seed=seed,
                     intersector=intersector, wall_s=wall, stages=stage, rounds=rounds,
