@@ -52,6 +52,13 @@ LEVEL_CHOICES = ("1", "2", "auto")
 #: Manta RecursiveGrid (Ize et al. 2007): (8 n)^(3 / (2L + 1 - 2 depth)) cells per subgrid.
 #: Kalojanov, Billeter, Slusallek 2011: leaf grids of density 1.2 references per cell.
 NESTED_BASELINES = {"manta-L2-top": (8.0, None), "kalojanov-2level": (1.2, (1.0, 1.0))}
+#: Bootstrap replicates of a penalty's 95% interval, and their seed.  Each replicate draws
+#: every measured grid's values again with replacement (independently: values of one grid
+#: are taken as exchangeable), takes their median, finds each curve's minimum as the
+#: measurement does and forms the penalty; the interval is the central 95% of the
+#: replicates.  On a noisy host a penalty of a few per cent can be the noise's.
+PENALTY_BOOTSTRAP = 400
+PENALTY_BOOTSTRAP_SEED = 12345
 #: Plot: figure size per scene panel (inches) and resolution.
 PANEL_INCHES = (5.2, 4.6)
 DPI = 90
@@ -121,9 +128,10 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
     thread's CPU time) or "wall" (the kernel's monotonic clock, as ``calibrate run`` times).
 
     Returns a JSON-ready dict: ``scene``, ``triangles``, ``units``, ``penalty``,
+    ``penalty_ci95`` (its bootstrap 95% interval, :func:`penalty_intervals`),
     ``predicted_resolution`` (top level), ``predicted_levels``, ``predicted_time_ns``,
     ``best_measured_resolution``, ``best_measured_levels``, ``best_measured_time_ns``,
-    ``baselines`` (name -> ``resolution``, ``levels``, ``penalty``, ``time_ns``,
+    ``baselines`` (name -> ``resolution``, ``levels``, ``penalty``, ``penalty_ci95``, ``time_ns``,
     ``mad_ns``, ``cells``), ``curves`` (per depth: ``levels``, ``fit``, ``points``),
     ``points`` (every sweep point), ``notes``.
     """
@@ -214,13 +222,21 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
     mc = measured[index[chosen]]
     if "median_ns" not in mc:
         raise UserError(f"{scene.name}: the predicted grid could not be built ({mc.get('skipped')})")
+    # the penalties' intervals: every measured grid's values drawn again
+    boot_curves = [[(f, index[spec]) for f, spec in zip(factors, curve_specs[c["levels"]])
+                    if measured[index[spec]].get("values_ns")] for c in fitted]
+    boot_choices = {name: index[spec] for name, spec in [("predicted", chosen), *baselines.items()]
+                    if measured[index[spec]].get("values_ns")}
+    needed = {i for pts in boot_curves for _, i in pts} | set(boot_choices.values())
+    intervals = penalty_intervals({i: measured[i]["values_ns"] for i in needed}, boot_curves, boot_choices)
     out_base = {}
     for name, spec in baselines.items():
         m = measured[index[spec]]
         row = dict(resolution=list(spec.top), levels=1 if spec.kind == "uniform" else spec.depth,
                    cells=m.get("cells"))
         if "median_ns" in m:
-            row.update(penalty=_sweep.penalty(m["median_ns"], t_best), time_ns=m["median_ns"], mad_ns=m["mad_ns"])
+            row.update(penalty=_sweep.penalty(m["median_ns"], t_best), penalty_ci95=intervals.get(name),
+                       time_ns=m["median_ns"], mad_ns=m["mad_ns"])
         else:
             row.update(penalty=None, time_ns=None, mad_ns=None, skipped=m.get("skipped"))
         out_base[name] = row
@@ -242,12 +258,43 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
         scene=scene.name, triangles=scene.n_triangles, units=units, fidelity=fidelity, rays=rays, clock=clock,
         ray_count=int(ray_count),
         constants=pred["constants"], penalty=_sweep.penalty(mc["median_ns"], t_best),
+        penalty_ci95=intervals.get("predicted"),
         predicted_resolution=list(chosen.top), predicted_levels=len(pred["levels"]),
         predicted_level_resolutions=[lv["resolution"] for lv in pred["levels"]],
         predicted_time_ns=mc["median_ns"], predicted_mad_ns=mc["mad_ns"], predicted_cells=mc["cells"],
         best_measured_resolution=best_curve["fit"]["resolution"], best_measured_levels=best_curve["levels"],
         best_measured_time_ns=t_best, best_measured_factor=best_curve["fit"]["factor"],
         baselines=out_base, curves=curves, points=all_points, t_step_scale_ns=t_step_ns, notes=notes))
+
+
+def penalty_intervals(values: dict, curves: list, choices: dict, *, replicates: int = PENALTY_BOOTSTRAP,
+                      seed: int = PENALTY_BOOTSTRAP_SEED) -> dict:
+    """Bootstrap 95% intervals of penalties (see PENALTY_BOOTSTRAP).
+
+    values : {grid index: (n,) values, ns per ray}; curves : one list per fitted curve of
+    (factor, grid index) for its measured points, in increasing factor; choices : {name:
+    grid index} of the grids whose penalty is wanted.  Returns {name: [low, high]}
+    ({} when a replicate finds no minimum for any curve)."""
+    rng = np.random.default_rng(seed)
+    idx = sorted(values)
+    arrays = {i: np.asarray(values[i], dtype=np.float64) for i in idx}
+    draws = {name: [] for name in choices}
+    for _ in range(int(replicates)):
+        med, mad = {}, {}
+        for i in idx:
+            v = arrays[i][rng.integers(0, arrays[i].size, arrays[i].size)]
+            med[i] = float(np.median(v))
+            mad[i] = float(np.median(np.abs(v - med[i])))
+        best = math.inf
+        for pts in curves:
+            fit = _sweep.fit_minimum([f for f, _ in pts], [med[i] for _, i in pts], mads=[mad[i] for _, i in pts],
+                                     counts=[arrays[i].size for _, i in pts])
+            best = min(best, fit["time"])
+        if not math.isfinite(best):
+            return {}
+        for name, i in choices.items():
+            draws[name].append(med[i] / best - 1.0)
+    return {name: [float(np.percentile(d, 2.5)), float(np.percentile(d, 97.5))] for name, d in draws.items() if d}
 
 
 def _check_points(points) -> int:
@@ -445,6 +492,11 @@ def _pct(x) -> str:
     return "-" if x is None else f"{100 * x:+.1f}%"
 
 
+def _pct_ci(x, ci) -> str:
+    """A penalty with its 95% interval, in per cent."""
+    return _pct(x) if x is None or not ci else f"{100 * x:+.1f}% [{100 * ci[0]:+.1f}, {100 * ci[1]:+.1f}]"
+
+
 def _fmt_res(res) -> str:
     return "x".join(str(v) for v in res)
 
@@ -456,13 +508,15 @@ def _print_human(results, summary, plot_path) -> None:
 
     console = _console()
     names = list(summary["baselines"])
-    table = Table(title="penalty = time(choice) / time(measured best) - 1  (measured, ns per ray)")
+    table = Table(title="penalty = time(choice) / time(measured best) - 1  (measured, ns per ray; "
+                        "the prediction's with its bootstrap 95% interval)")
     for col in ("scene", "predicted", "best measured", "penalty", *names):
         table.add_column(col, justify="right")
     for r in results:
         pred = f"{_fmt_res(r['predicted_resolution'])} L{r['predicted_levels']}"
         best = f"{_fmt_res(r['best_measured_resolution'])} L{r['best_measured_levels']}"
-        table.add_row(r["scene"], pred, best, _pct(r["penalty"]), *(_pct(r["baselines"][n]["penalty"])
+        table.add_row(r["scene"], pred, best, _pct_ci(r["penalty"], r.get("penalty_ci95")),
+                      *(_pct(r["baselines"][n]["penalty"])
                                                                      if n in r["baselines"] else "-"
                                                                      for n in names))
     if len(results) > 1:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from calibrate import cli
@@ -59,6 +60,10 @@ def test_json_has_every_field(short_run):
         lo, hi = p["predicted"]["ci95"]
         assert lo <= p["predicted"]["median"] <= hi
     assert doc["summary"]["predicted"]["scenes"] == 1
+    lo, hi = r["penalty_ci95"]
+    assert lo <= hi and lo <= r["penalty"] + 1e-9 and r["penalty"] - 1e-9 <= hi + 0.05
+    for name, b in r["baselines"].items():
+        assert b["penalty_ci95"][0] <= b["penalty_ci95"][1], name
 
 
 def test_measured_minimum_is_inside_the_sweep(short_run):
@@ -125,3 +130,29 @@ def test_a_predicted_grid_over_the_budget_is_one_line_exit_2(monkeypatch, capsys
     assert code == 2 and "predicted grid cannot be measured" in err and err.count("\n") == 1 and out == ""
     code, out, err = _run(["compare", "cylinder196", "cylinder196", "--levels", "1", *SHORT], capsys)
     assert code == 2 and "no scene could be measured" in err and out == ""
+
+
+def test_penalty_intervals_recover_a_planted_curve_and_widen_with_noise():
+    """A planted curve 100 exp((log f)^2) ns per ray (the parabola in log time against log
+    scale that the minimum's fit assumes) with its minimum at f = 1, and a choice at f = 2
+    (planted penalty exp((log 2)^2) - 1 = 61.7%): with 0.5% noise its interval is narrow and
+    holds 61.7%, with 10% noise it is several times wider; a choice at the minimum has an
+    interval about 0."""
+    from calibrate.compare import penalty_intervals
+
+    factors = sweep_factors(9)
+    truth = 100.0 * np.exp(np.log(factors) ** 2)
+    widths = []
+    for noise in (0.005, 0.10):
+        rng = np.random.default_rng(0)
+        values = {i: list(t * np.exp(noise * rng.standard_normal(12))) for i, t in enumerate(truth)}
+        values[99] = list(100.0 * np.exp(np.log(2.0) ** 2) * np.exp(noise * rng.standard_normal(12)))
+        curve = [(f, i) for i, f in enumerate(factors)]
+        ci = penalty_intervals(values, [curve], {"off": 99, "at": int(np.argmin(truth))})
+        planted = np.exp(np.log(2.0) ** 2) - 1.0
+        widths.append(ci["off"][1] - ci["off"][0])
+        if noise < 0.01:
+            assert ci["off"][0] < planted < ci["off"][1]
+            assert widths[0] < 0.03
+            assert ci["at"][0] < 0.01 and ci["at"][1] > -0.02
+    assert widths[1] > 4 * widths[0]

@@ -36,6 +36,11 @@ def _pct(x):
     return "      -" if x is None else f"{100 * x:+7.1f}"
 
 
+def _ci(r):
+    ci = r.get("penalty_ci95")
+    return f" [{100 * ci[0]:+.1f}, {100 * ci[1]:+.1f}]" if ci else ""
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     src = ap.add_mutually_exclusive_group()
@@ -99,7 +104,7 @@ def main() -> None:
         base = "  ".join(f"{n} {_pct(b['penalty'])}" for n, b in r["baselines"].items())
         print(f"{r['scene']:28s} {r['triangles']:>7,} tri  L{r['predicted_levels']} pred "
               f"{'x'.join(map(str, r['predicted_resolution'])):>12s}  best L{r['best_measured_levels']} "
-              f"{'x'.join(map(str, r['best_measured_resolution'])):>12s}  penalty {_pct(r['penalty'])}%  | {base}"
+              f"{'x'.join(map(str, r['best_measured_resolution'])):>12s}  penalty {_pct(r['penalty'])}%{_ci(r)}  | {base}"
               f"  ({r['wall_s']:.0f} s, {n_rays} rays)", flush=True)
         Path(args.out).write_text(json.dumps(dict(scenes=results, summary=summarise(results)), indent=1))
     s = summarise(results)
