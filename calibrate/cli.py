@@ -255,19 +255,32 @@ def cmd_fit(args) -> int:
     src = Path(args.file)
     cal = calfile.load(src)
     out = check_writable(Path(args.out) if args.out else src)  # before fitting, not after
+    from .run import refit_calibration
+
     with _Progress(not args.quiet, "fitting") as _:
-        new = calfile.refit(cal, seed=args.seed)
+        new, warnings = refit_calibration(cal, seed=args.seed)
     calfile.save(out, new)
+    meta = new.get("meta", {})
     if args.json:
+        _print_warnings(warnings)
         _print_json(dict(constants=new["constants"],
                          constants_by_rays=_constants_by_rays(new),
-                         out=str(out)))
+                         constants_isolated=new.get("isolated") or {},
+                         holdout_mare=meta.get("holdout_mare"), cv_mare=meta.get("cv_mare"),
+                         warnings=warnings, out=str(out)))
     else:
-        _console().print(_constants_table(new, f"re-fit of {src.name}"))
+        console = _console()
+        console.print(_constants_table(new, f"re-fit of {src.name}"))
         table = _by_rays_table(new, "each ray set fitted alone")
         if table is not None:
-            _console().print(table)
-        _console().print(f"written to {out}")
+            console.print(table)
+        if meta.get("holdout_mare") is not None:
+            console.print(f"held-back median absolute relative error: {100 * meta['holdout_mare']:.1f}% "
+                          f"(pooled constants: {100 * meta['holdout_mare_pooled']:.1f}%)")
+        if meta.get("cv_mare") is not None:
+            console.print(f"cross-validated ({meta.get('cv_folds', 5)} folds): {100 * meta['cv_mare']:.1f}%")
+        console.print(f"written to {out}")
+        _print_warnings(warnings)
     return 0
 
 

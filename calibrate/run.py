@@ -443,6 +443,49 @@ def _isolated_fit(recs, seed):
     return out, ("isolated: " + "; ".join(problems)) if problems else None
 
 
+def refit_calibration(cal, *, seed: int = 0) -> tuple[dict, list]:
+    """``calibrate fit``: a run's fits again on a calibration's stored measurements, by this
+    version's code: the isolating suites (their constants give the in-context priors; a file
+    without their measurements keeps its stored priors), the pooled fit, each ray set's, and
+    the held-back and cross-validated errors the file reports (``meta``), so that they describe
+    the new fit, not the old one.  Returns (validated calibration, warnings)."""
+    cal = calfile.validate(calfile._plain(cal))
+    recs = cal["measurements"]
+    warnings = []
+    if any(r["kind"] == "isolated" and r["values_ns"] for r in recs):
+        isolated, iso_warning = _isolated_fit(recs, seed)
+        if iso_warning:
+            warnings.append(iso_warning)
+        priors = _priors(isolated)
+    else:
+        isolated = cal.get("isolated", {})
+        try:
+            priors = {str(k): (float(v[0]), float(v[1])) for k, v in (cal["diagnostics"].get("priors") or {}).items()}
+        except (TypeError, ValueError, IndexError):
+            raise UserError("diagnostics.priors: must map constant names to [median_ns, sigma_log]") from None
+    result = calfile.fit_in_context(calfile.design_from_measurements(recs, "in_context"), seed=seed, priors=priors)
+    by_rays, skipped = calfile.fit_by_rays(recs, seed=seed, priors=priors)
+    for name, why in skipped.items():
+        warnings.append(f"ray set {name}: not fitted alone, its predictions use the pooled constants ({why})")
+    meta = {k: v for k, v in cal.get("meta", {}).items() if k != "by_rays_skipped"}
+    if any(r.get("held_back") for r in recs):
+        mare, mare_pooled, mare_by_rays = _holdout(result, by_rays, recs)
+        cv, cv_by_rays = _cross_validated(result, by_rays, recs, seed, priors)
+        meta.update(holdout_mare=None if math.isnan(mare) else mare,
+                    holdout_mare_pooled=None if math.isnan(mare_pooled) else mare_pooled,
+                    holdout_mare_by_rays=mare_by_rays, cv_mare=None if math.isnan(cv) else cv,
+                    cv_mare_by_rays=cv_by_rays)
+    meta.update(ratio_rel_width=_rel_width(result), refit_seed=seed)
+    if skipped:
+        meta["by_rays_skipped"] = skipped
+    for _, name, _ in calfile.OPTIONAL_TERMS:
+        if f"{name[:-3]}_skipped" in result.diagnostics:
+            warnings.append(result.diagnostics[f"{name[:-3]}_skipped"])
+    new = calfile.from_fit(result, fingerprint=cal["fingerprint"], measurements=recs, isolated=isolated, meta=meta,
+                           by_rays=by_rays)
+    return new, warnings
+
+
 def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
                     target_rel_width: float | None = DEFAULT_TARGET_REL_WIDTH,
                     intersector: str = "watertight", seed: int = 0, resume: bool = False,

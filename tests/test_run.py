@@ -100,6 +100,21 @@ def test_run_writes_a_valid_calibration(small_suite, tmp_path):
     # the stored measurements re-fit without measuring again
     again = calfile.refit(cal, seed=3)
     assert again["constants"]["ratio"]["median"] > 0
+    # `calibrate fit` re-fits the isolating suites too and reports the new fit's errors, not the stored ones
+    stale = json.loads(json.dumps(cal))
+    stale["meta"].update(holdout_mare=0.999, cv_mare=0.999)
+    stale["isolated"] = {}
+    new, warnings = run.refit_calibration(stale, seed=3)
+    assert new["meta"]["holdout_mare"] == pytest.approx(cal["meta"]["holdout_mare"], rel=0.5, abs=0.02)
+    assert new["meta"]["cv_mare"] == pytest.approx(cal["meta"]["cv_mare"], rel=0.5, abs=0.02)
+    assert set(new["isolated"]) == set(cal["isolated"])
+    assert all(isinstance(w, str) for w in warnings)
+    # a file without isolating measurements keeps the priors it was fitted with
+    bare = json.loads(json.dumps(cal))
+    bare["measurements"] = [m for m in bare["measurements"] if m["kind"] == "in_context"]
+    new, _ = run.refit_calibration(bare, seed=3)
+    assert new["diagnostics"]["priors"] == cal["diagnostics"]["priors"]
+    assert new["isolated"] == cal["isolated"]
 
 
 def test_interrupted_run_resumes_to_the_same_kind_of_data(small_suite, tmp_path):
