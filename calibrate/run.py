@@ -323,29 +323,41 @@ def _suite_design(recs, suite, per_ray, threshold, aimed_column=False):
 CELL_SUITE_DESIGNS = ((STEADY_TESTS_PER_RAY, True), (STEADY_TESTS_PER_RAY, False), (0.0, True), (0.0, False))
 
 
+def _first_design_that_fits(tries, seed, required, what):
+    """Fit the designs of ``tries``, (design, note, name) each, in turn until one fits (an
+    isolating suite's fit: capped at ISOLATED_MAX_STEPS, stopped early on an unidentified
+    constant).  Returns (FitResult, note): the design's own note, and when it was not the
+    first, which was fitted and why those before it were not.  Raises the first error when
+    none fits."""
+    first_error, notes = None, []
+    for design, note, name in tries:
+        try:
+            res = _fit.fit(design, seed=seed, required=required, max_steps=ISOLATED_MAX_STEPS,
+                           fail_fast=ISOLATED_FAIL_FAST)
+        except (ValueError, _fit.ConvergenceError) as exc:
+            first_error = first_error or exc
+            notes.append(f"{name}: {exc}")
+            continue
+        if notes:
+            note = "; ".join(([note] if note else []) + [f"{what} fitted on {name}, since " + "; ".join(notes)])
+        return res, note
+    raise first_error
+
+
 def fit_cell_suite(recs, seed):
     """The one-cell suite's fit: on its steady-state lists with the aimed rays' extra cost
     apart when that fits, else the next of CELL_SUITE_DESIGNS that does (the note says which
     and why).  Returns (:class:`calibrate.fit.FitResult` whose ``t_int_ns`` is T_int, note or
     None); raises the first design's error when none fits."""
-    first_error, notes = None, []
-    lists = lambda threshold: "every list" if threshold <= 0 else f"lists of {threshold:g}+ triangles"  # noqa: E731
+    tries = []
     for threshold, aimed in CELL_SUITE_DESIGNS:
         design, note = _suite_design(recs, "cell", "tests", threshold, aimed_column=aimed)
         if not aimed:
             design["steps"] = np.zeros_like(design["steps"])  # each ray steps once: steps are rays
-        try:
-            res = _fit.fit(design, seed=seed, required=("rays", "tests"), max_steps=ISOLATED_MAX_STEPS,
-                           fail_fast=ISOLATED_FAIL_FAST)
-        except (ValueError, _fit.ConvergenceError) as exc:
-            first_error = first_error or exc
-            notes.append(f"{lists(threshold)}{', aimed rays apart' if aimed else ''}: {exc}")
-            continue
-        if notes:
-            how = lists(threshold) + (", aimed rays apart" if aimed else ", one per-ray cost")
-            note = "; ".join(([note] if note else []) + [f"cell suite fitted on {how}, since " + "; ".join(notes)])
-        return res, note
-    raise first_error
+        name = ("every list" if threshold <= 0 else f"lists of {threshold:g}+ triangles") + (
+            ", aimed rays apart" if aimed else ", one per-ray cost")
+        tries.append((design, note, name))
+    return _first_design_that_fits(tries, seed, ("rays", "tests"), "cell suite")
 
 
 #: The empty-grid suite's designs, tried in turn until one fits (least steps a ray): the
@@ -360,21 +372,9 @@ def fit_empty_suite(recs, seed):
     """The empty-grid suite's fit: on its steady walks when that fits, else on every walk (the
     note says so and why).  Returns (:class:`calibrate.fit.FitResult` with T_setup and T_step,
     note or None); raises the first design's error when none fits."""
-    first_error, notes = None, []
-    for threshold in EMPTY_SUITE_DESIGNS:
-        design, note = _suite_design(recs, "empty", "steps", threshold)
-        try:
-            res = _fit.fit(design, seed=seed, required=("rays", "steps"), max_steps=ISOLATED_MAX_STEPS,
-                           fail_fast=ISOLATED_FAIL_FAST)
-        except (ValueError, _fit.ConvergenceError) as exc:
-            first_error = first_error or exc
-            notes.append(f"walks of {threshold:g}+ steps: {exc}")
-            continue
-        if notes:
-            note = "; ".join(([note] if note else [])
-                             + ["empty-grid suite fitted on every walk, since " + "; ".join(notes)])
-        return res, note
-    raise first_error
+    tries = [(*_suite_design(recs, "empty", "steps", threshold),
+              "every walk" if threshold <= 0 else f"walks of {threshold:g}+ steps") for threshold in EMPTY_SUITE_DESIGNS]
+    return _first_design_that_fits(tries, seed, ("rays", "steps"), "empty-grid suite")
 
 
 def _isolated_fit(recs, seed):
@@ -443,6 +443,21 @@ def _isolated_fit(recs, seed):
     return out, ("isolated: " + "; ".join(problems)) if problems else None
 
 
+def _finish(result, recs, seed, priors, warnings):
+    """What a run does after its last pooled fit, and ``calibrate fit`` after its re-fit: each
+    ray set's fit, the held-back errors ((MARE, pooled MARE, {ray set: MARE})) and the
+    cross-validated ones ((median, {ray set: median})).  Ray sets not fitted alone and optional
+    terms the pooled fit left out are said in ``warnings``.  Returns (by_rays, skipped,
+    held-back errors, cross-validated errors)."""
+    by_rays, skipped = calfile.fit_by_rays(recs, seed=seed, priors=priors)
+    for name, why in skipped.items():
+        warnings.append(f"ray set {name}: not fitted alone, its predictions use the pooled constants ({why})")
+    for _, name, _ in calfile.OPTIONAL_TERMS:
+        if f"{name[:-3]}_skipped" in result.diagnostics:
+            warnings.append(result.diagnostics[f"{name[:-3]}_skipped"])
+    return by_rays, skipped, _holdout(result, by_rays, recs), _cross_validated(result, by_rays, recs, seed, priors)
+
+
 def refit_calibration(cal, *, seed: int = 0) -> tuple[dict, list]:
     """``calibrate fit``: a run's fits again on a calibration's stored measurements, by this
     version's code: the isolating suites (their constants give the in-context priors; a file
@@ -464,13 +479,10 @@ def refit_calibration(cal, *, seed: int = 0) -> tuple[dict, list]:
         except (TypeError, ValueError, IndexError):
             raise UserError("diagnostics.priors: must map constant names to [median_ns, sigma_log]") from None
     result = calfile.fit_in_context(calfile.design_from_measurements(recs, "in_context"), seed=seed, priors=priors)
-    by_rays, skipped = calfile.fit_by_rays(recs, seed=seed, priors=priors)
-    for name, why in skipped.items():
-        warnings.append(f"ray set {name}: not fitted alone, its predictions use the pooled constants ({why})")
+    by_rays, skipped, (mare, mare_pooled, mare_by_rays), (cv, cv_by_rays) = _finish(result, recs, seed, priors,
+                                                                                     warnings)
     meta = {k: v for k, v in cal.get("meta", {}).items() if k != "by_rays_skipped"}
     if any(r.get("held_back") for r in recs):
-        mare, mare_pooled, mare_by_rays = _holdout(result, by_rays, recs)
-        cv, cv_by_rays = _cross_validated(result, by_rays, recs, seed, priors)
         meta.update(holdout_mare=None if math.isnan(mare) else mare,
                     holdout_mare_pooled=None if math.isnan(mare_pooled) else mare_pooled,
                     holdout_mare_by_rays=mare_by_rays, cv_mare=None if math.isnan(cv) else cv,
@@ -478,9 +490,6 @@ def refit_calibration(cal, *, seed: int = 0) -> tuple[dict, list]:
     meta.update(ratio_rel_width=_rel_width(result), refit_seed=seed)
     if skipped:
         meta["by_rays_skipped"] = skipped
-    for _, name, _ in calfile.OPTIONAL_TERMS:
-        if f"{name[:-3]}_skipped" in result.diagnostics:
-            warnings.append(result.diagnostics[f"{name[:-3]}_skipped"])
     new = calfile.from_fit(result, fingerprint=cal["fingerprint"], measurements=recs, isolated=isolated, meta=meta,
                            by_rays=by_rays)
     return new, warnings
@@ -586,11 +595,8 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
             rounds += STAGE_ROUNDS
 
         status("fitting each ray set alone")
-        by_rays, skipped = calfile.fit_by_rays(recs, seed=seed, priors=_priors(isolated))
-        for name, why in skipped.items():
-            warnings.append(f"ray set {name}: not fitted alone, its predictions use the pooled constants ({why})")
-        mare, mare_pooled, mare_by_rays = _holdout(result, by_rays, recs)
-        cv, cv_by_rays = _cross_validated(result, by_rays, recs, seed, _priors(isolated))
+        by_rays, skipped, (mare, mare_pooled, mare_by_rays), (cv, cv_by_rays) = _finish(
+            result, recs, seed, _priors(isolated), warnings)
         if iso_warning:
             warnings.append(iso_warning)
         cut = 0
@@ -619,9 +625,6 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
                     ratio_rel_width=_rel_width(result), pinned_core=pin.core, pin_note=pin.note,
                     rays_per_batch=suites.RAYS_PER_BATCH, min_value_ns=MIN_VALUE_NS,
                     cache_bytes=cache, cache_source=cache_source)
-        for _, name, _ in calfile.OPTIONAL_TERMS:
-            if f"{name[:-3]}_skipped" in result.diagnostics:
-                warnings.append(result.diagnostics[f"{name[:-3]}_skipped"])
         if skipped:
             meta["by_rays_skipped"] = skipped
         from ._kernels import CFLAGS, traverse_isa
