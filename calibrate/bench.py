@@ -285,6 +285,32 @@ def interleaved(calls: dict, repeats: int, warmups: int = 1, clock: str = "threa
     return out
 
 
+#: Bootstrap replicates of a throughput ratio's 95% interval, and their seed.
+RATIO_BOOTSTRAP = 2000
+RATIO_BOOTSTRAP_SEED = 7
+
+
+def ratio_interval(rounds, replicates: int = RATIO_BOOTSTRAP, seed: int = RATIO_BOOTSTRAP_SEED) -> list:
+    """Bootstrap 95% interval of a contender's throughput over Embree's, over ray sets.
+
+    rounds : one (weight, embree_times, contender_times) per ray set, the two time lists
+    paired by round (:func:`interleaved`); weight is Embree's median time on that set.  Each
+    replicate draws every set's rounds again with replacement, takes the median of the
+    paired ratios per set and combines the sets as ``bench_scene`` does (sum of weights over
+    the sum of weight / ratio).  Returns [low, high]."""
+    rng = np.random.default_rng(seed)
+    sets = [(float(w), np.asarray(e, dtype=np.float64) / np.asarray(c, dtype=np.float64)) for w, e, c in rounds]
+    draws = np.empty(int(replicates))
+    for k in range(draws.size):
+        num = den = 0.0
+        for w, ratios in sets:
+            r = float(np.median(ratios[rng.integers(0, ratios.size, ratios.size)]))
+            num += w
+            den += w / r
+        draws[k] = num / den
+    return [float(np.percentile(draws, 2.5)), float(np.percentile(draws, 97.5))]
+
+
 def rate_summary(times_ns, rays: int) -> dict:
     """Median Mrays/s of per-batch times and the spread (max - min) / median of the rates."""
     rates = rays * 1e3 / np.asarray(times_ns, dtype=np.float64)
@@ -333,9 +359,11 @@ def bench_scene(scene, *, constants=None, samples=None, ratio=None, batch: int =
     gridcal contender: levels, resolution, references, memory_bytes, predict_s,
     build_s), ``ray_sets`` (per set: hit fraction, per-contender rate summaries and
     agreement with gridcal's uniform grid, and ``ratio_vs_embree``: per contender the
-    median over rounds of its rate over Embree's in the same round), ``mrays_per_s`` (per
-    contender over all ray sets: total rays / total median time), ``ratio_vs_embree``
-    (the per-set paired ratios combined with weights of Embree's time per set),
+    median over rounds of its rate over Embree's in the same round, and
+    ``ratio_vs_embree_ci95``, its bootstrap 95% interval), ``mrays_per_s`` (per contender
+    over all ray sets: total rays / total median time), ``ratio_vs_embree`` (the per-set
+    paired ratios combined with weights of Embree's time per set) and
+    ``ratio_vs_embree_ci95`` (:func:`ratio_interval`; not for trimesh, timed apart),
     ``skipped`` (contender -> reason), ``agreement_ok``.
     """
     from models.stats import scene_class
@@ -403,6 +431,9 @@ def bench_scene(scene, *, constants=None, samples=None, ratio=None, batch: int =
             e = np.asarray(times["embree"], dtype=np.float64)
             paired = {name: float(np.median(e / np.asarray(ts, dtype=np.float64)))
                       for name, ts in times.items() if name != "embree"}
+            paired_rounds = {name: ts for name, ts in times.items() if name != "embree"}
+        else:
+            paired_rounds = {}
         if "trimesh" in tracers:
             m = min(batch, TRIMESH_BATCH)
             t, prim = tracers["trimesh"].first_hits(o[:m], d[:m])
@@ -415,7 +446,10 @@ def bench_scene(scene, *, constants=None, samples=None, ratio=None, batch: int =
                 paired["trimesh"] = rates["trimesh"]["mrays_per_s"] / rates["embree"]["mrays_per_s"]
         agreement_ok &= all(a["ok"] for a in agreement.values())
         sets[rs] = dict(rays=batch, hits=float(np.isfinite(t_ref).mean()), rates=rates, agreement=agreement,
-                        ratio_vs_embree=paired)
+                        ratio_vs_embree=paired,
+                        ratio_vs_embree_ci95={name: ratio_interval([(1.0, times["embree"], ts)])
+                                              for name, ts in paired_rounds.items()})
+        sets[rs]["_rounds"] = (times.get("embree"), paired_rounds)
     overall = {}
     for name in CONTENDERS:
         per = [s["rates"][name] for s in sets.values() if name in s["rates"]]
@@ -432,9 +466,18 @@ def bench_scene(scene, *, constants=None, samples=None, ratio=None, batch: int =
             w = [(s["rays"] / s["rates"]["embree"]["mrays_per_s"], s["ratio_vs_embree"][name])
                  for s in sets.values() if name in s["ratio_vs_embree"]]
             ratio_vs[name] = sum(t for t, _ in w) / sum(t / r for t, r in w)
+    ratio_ci = {}
+    for name in ratio_vs:
+        rounds = [(s["rays"] / s["rates"]["embree"]["mrays_per_s"], s["_rounds"][0], s["_rounds"][1][name])
+                  for s in sets.values() if name in s["_rounds"][1]]
+        if rounds:  # trimesh is timed on its own batch, not in Embree's rounds: no interval
+            ratio_ci[name] = ratio_interval(rounds)
+    for s in sets.values():
+        del s["_rounds"]
     cls = scene_class(scene.stats)
     return dict(scene=scene.name, triangles=scene.n_triangles, scene_class=cls[0] if isinstance(cls, tuple) else cls,
-                grids=info, ray_sets=sets, mrays_per_s=overall, ratio_vs_embree=ratio_vs, skipped=skipped,
+                grids=info, ray_sets=sets, mrays_per_s=overall, ratio_vs_embree=ratio_vs,
+                ratio_vs_embree_ci95=ratio_ci, skipped=skipped,
                 agreement_ok=bool(agreement_ok), batch=batch, repeats=repeats, clock=clock, t_rel_tol=T_REL_TOL,
                 min_agreement=MIN_AGREEMENT)
 
@@ -693,8 +736,11 @@ def _print_bench(result: dict) -> None:
         table.add_row("all", "", *[f"{s['mrays_per_s'][n]:.3g}" for n in names], "")
         console.print(table)
         if s["ratio_vs_embree"]:
-            console.print("ratio vs Embree: " + ", ".join(f"{n} {r:.2f}" if r >= 0.1 else f"{n} {r:.2g}"
-                                                          for n, r in s["ratio_vs_embree"].items()))
+            ci = s.get("ratio_vs_embree_ci95") or {}
+            console.print("ratio vs Embree (bootstrap 95% interval over the paired rounds): " + ", ".join(
+                (f"{n} {r:.2f}" if r >= 0.1 else f"{n} {r:.2g}")
+                + (f" [{ci[n][0]:.2f}, {ci[n][1]:.2f}]" if n in ci else "")
+                for n, r in s["ratio_vs_embree"].items()))
         for n, why in s["skipped"].items():
             console.print(f"skipped {n}: {why}")
         if not s["agreement_ok"]:
