@@ -409,6 +409,7 @@ def bench_scene(scene, *, constants=None, samples=None, ratio=None, batch: int =
     else:
         skipped["trimesh"] = "not requested (--no-trimesh)"
     sets = {}
+    rounds_by_set = {}  # ray set -> (Embree's times, {contender: times}), paired by round
     agreement_ok = True
     for i, rs in enumerate(ray_sets):
         note(f"{scene.name}: {rs} rays")
@@ -449,7 +450,7 @@ def bench_scene(scene, *, constants=None, samples=None, ratio=None, batch: int =
                         ratio_vs_embree=paired,
                         ratio_vs_embree_ci95={name: ratio_interval([(1.0, times["embree"], ts)])
                                               for name, ts in paired_rounds.items()})
-        sets[rs]["_rounds"] = (times.get("embree"), paired_rounds)
+        rounds_by_set[rs] = (times.get("embree"), paired_rounds)
     overall = {}
     for name in CONTENDERS:
         per = [s["rates"][name] for s in sets.values() if name in s["rates"]]
@@ -468,12 +469,10 @@ def bench_scene(scene, *, constants=None, samples=None, ratio=None, batch: int =
             ratio_vs[name] = sum(t for t, _ in w) / sum(t / r for t, r in w)
     ratio_ci = {}
     for name in ratio_vs:
-        rounds = [(s["rays"] / s["rates"]["embree"]["mrays_per_s"], s["_rounds"][0], s["_rounds"][1][name])
-                  for s in sets.values() if name in s["_rounds"][1]]
+        rounds = [(s["rays"] / s["rates"]["embree"]["mrays_per_s"], rounds_by_set[rs][0], rounds_by_set[rs][1][name])
+                  for rs, s in sets.items() if name in rounds_by_set[rs][1]]
         if rounds:  # trimesh is timed on its own batch, not in Embree's rounds: no interval
             ratio_ci[name] = ratio_interval(rounds)
-    for s in sets.values():
-        del s["_rounds"]
     cls = scene_class(scene.stats)
     return dict(scene=scene.name, triangles=scene.n_triangles, scene_class=cls[0] if isinstance(cls, tuple) else cls,
                 grids=info, ray_sets=sets, mrays_per_s=overall, ratio_vs_embree=ratio_vs,

@@ -644,6 +644,16 @@ def fit_in_context(design: Mapping, **fit_kwargs) -> _fit.FitResult:
     return result
 
 
+def stored_priors(cal: Mapping) -> dict:
+    """The priors a calibration's pooled fit took from the isolating suites
+    (``diagnostics.priors``), as ``{name: (median_ns, sigma_log)}``; UserError if malformed."""
+    stored = cal["diagnostics"].get("priors") or {}
+    try:
+        return {str(k): (float(v[0]), float(v[1])) for k, v in stored.items()}
+    except (TypeError, ValueError, IndexError):
+        raise UserError("diagnostics.priors: must map constant names to [median_ns, sigma_log]") from None
+
+
 def refit(cal: Mapping, *, seed: int = 0, intersector: str | None = None,
           optional: tuple = DEFAULT_OPTIONAL_COUNTS, **fit_kwargs) -> dict:
     """Re-fit the constants from a calibration's stored in-context measurements.
@@ -657,11 +667,7 @@ def refit(cal: Mapping, *, seed: int = 0, intersector: str | None = None,
     cal = validate(_plain(cal))
     design = design_from_measurements(cal["measurements"], "in_context", intersector, optional=optional)
     if "priors" not in fit_kwargs:  # the priors the original fit took from the isolating suites
-        stored = cal["diagnostics"].get("priors") or {}
-        try:
-            fit_kwargs["priors"] = {str(k): (float(v[0]), float(v[1])) for k, v in stored.items()}
-        except (TypeError, ValueError, IndexError):
-            raise UserError("diagnostics.priors: must map constant names to [median_ns, sigma_log]") from None
+        fit_kwargs["priors"] = stored_priors(cal)
     result = fit_in_context(design, seed=seed, **fit_kwargs)
     by_rays, skipped = fit_by_rays(cal["measurements"], seed=seed, intersector=intersector, optional=optional,
                                    **fit_kwargs)

@@ -474,10 +474,7 @@ def refit_calibration(cal, *, seed: int = 0) -> tuple[dict, list]:
         priors = _priors(isolated)
     else:
         isolated = cal.get("isolated", {})
-        try:
-            priors = {str(k): (float(v[0]), float(v[1])) for k, v in (cal["diagnostics"].get("priors") or {}).items()}
-        except (TypeError, ValueError, IndexError):
-            raise UserError("diagnostics.priors: must map constant names to [median_ns, sigma_log]") from None
+        priors = calfile.stored_priors(cal)
     result = calfile.fit_in_context(calfile.design_from_measurements(recs, "in_context"), seed=seed, priors=priors)
     by_rays, skipped, (mare, mare_pooled, mare_by_rays), (cv, cv_by_rays) = _finish(result, recs, seed, priors,
                                                                                      warnings)
