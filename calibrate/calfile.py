@@ -25,6 +25,10 @@ Schema (version :data:`SCHEMA_VERSION`), one JSON object::
         {"kind": "isolated" | "in_context", "scene": str, "resolution": int | [..] | null,
          "intersector": str | null, "rays": int, "steps": int, "tests": int,
          "subgrids": int, "values_ns": [ns per batch, ...],
+         "raw_values_ns": [...], "stamps_s": [...],  # optional: the values as timed and when
+                                                 #   each ended (s); values_ns is then raw over
+                                                 #   the host's common slowdown at that time
+                                                 #   (protocol.drift_factors; apply_drift)
          "memory_bytes": int, "misses": float,   # optional: the grid's bytes, and the cache
                                                  #   lines its batch fetched from beyond the cache
          "visits": int,                          # optional: occupied cells entered (<= steps)
@@ -59,6 +63,7 @@ __all__ = [
     "SCHEMA_VERSION",
     "MEASUREMENT_KINDS",
     "SAMPLE_COLUMNS",
+    "apply_drift",
     "constants_json",
     "design_from_measurements",
     "dumps",
@@ -287,6 +292,20 @@ def _validate_measurement(m, where: str) -> None:
     for i, v in enumerate(vals):
         if _finite(v, f"{where}.values_ns[{i}]") < 0:
             _fail(f"{where}.values_ns[{i}]", f"negative time {v:g}")
+    if ("raw_values_ns" in obj) != ("stamps_s" in obj):
+        _fail(where, "raw_values_ns and stamps_s come together (the values as timed and when)")
+    for key in ("raw_values_ns", "stamps_s"):
+        if key not in obj:
+            continue
+        seq = obj[key]
+        if not isinstance(seq, list):
+            _fail(f"{where}.{key}", f"must be an array, got {_json_type(seq)}")
+        if len(seq) != len(vals):
+            _fail(f"{where}.{key}", f"has {len(seq)} entries for {len(vals)} values")
+        for i, v in enumerate(seq):
+            x = _finite(v, f"{where}.{key}[{i}]")
+            if key == "raw_values_ns" and x <= 0:
+                _fail(f"{where}.{key}[{i}]", f"time must be positive, got {x:g}")
 
 
 def _validate_fit(obj: Mapping, prefix: str) -> None:
@@ -541,6 +560,25 @@ def samples_by_name(cal: Mapping) -> dict[str, np.ndarray]:
     out = {name: values[:, k].copy() for k, name in enumerate(cols)}
     out[_fit.RATIO_NAME] = out["t_int_ns"] / out["t_step_ns"]
     return out
+
+
+def apply_drift(measurements: list) -> list:
+    """Divide the host's common slowdown out of every record that carries its raw values and stamps.
+
+    Sets each such record's ``values_ns`` to ``raw_values_ns`` over the factors of
+    :func:`calibrate.protocol.drift_factors`, estimated over all these records together
+    (each value's neighbours in time are other configurations' values); records without
+    stamps keep their values.  In place; returns ``measurements``.
+    """
+    from .protocol import drift_factors
+
+    stamped = {i: m for i, m in enumerate(measurements) if m.get("stamps_s") and m.get("raw_values_ns")}
+    if not stamped:
+        return measurements
+    factors = drift_factors({i: (m["raw_values_ns"], m["stamps_s"]) for i, m in stamped.items()})
+    for i, m in stamped.items():
+        m["values_ns"] = (np.asarray(m["raw_values_ns"], dtype=np.float64) / factors[i]).tolist()
+    return measurements
 
 
 def design_from_measurements(

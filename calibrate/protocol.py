@@ -61,11 +61,16 @@ __all__ = [
     "REL_SPREAD_WARN",
     "TIMER_RESOLUTION_FACTOR",
     "MAD_TO_SIGMA",
+    "DRIFT_NEIGHBOURS",
+    "DRIFT_MAX_GAP_S",
+    "DRIFT_ITERATIONS",
+    "DRIFT_MIN_SERIES",
     "Copies",
     "Measurement",
     "MeasurementInterrupted",
     "Pinning",
     "calibrate_loops",
+    "drift_factors",
     "measure",
     "median_mad",
     "pin_to_one_core",
@@ -102,6 +107,17 @@ MIN_VALUES_FOR_SPREAD = 3
 MAD_TO_SIGMA = 1.482602218505602
 # Successive perf_counter_ns reads taken to estimate the timer step empirically.
 TIMER_PROBE_READS = 2000
+# drift_factors: values on each side of a value whose residuals estimate the host's
+# common slowdown at its time, the longest gap to such a neighbour (a fit or a stage in
+# between and the neighbour says nothing), and the refinements of medians and slowdown.
+# On the AMD EPYC host (2026-12-03) 2 on each side with 3 refinements reproduced the
+# configurations' medians best among 1-10 a side and 1 or 3 refinements (docs/calibration.md).
+DRIFT_NEIGHBOURS = 2
+DRIFT_MAX_GAP_S = 1.0
+DRIFT_ITERATIONS = 3
+# Fewest stamped configurations drift_factors corrects: with fewer, a value's neighbours
+# are mostly its own configuration's, and the slowdown cannot be told from its noise.
+DRIFT_MIN_SERIES = 3
 
 
 # ---------------------------------------------------------------------------
@@ -124,6 +140,78 @@ def median_mad(values_ns) -> tuple[float, float]:
     return med, float(np.median(np.abs(v - med)))
 
 
+def drift_factors(series: Mapping[str, tuple]) -> dict[str, np.ndarray]:
+    """The host's common slowdown at the time of each value, estimated from its neighbours.
+
+    series : name -> (values, stamps_s), one configuration's values (any positive unit) and
+        when each was timed (seconds, one clock for all); stamps empty or None for a series
+        measured without them, whose factors are 1 and whose values inform no other.
+    Returns name -> (n,) positive factors; ``values / factors`` are the values with the
+    slowdown divided out.  With fewer than DRIFT_MIN_SERIES stamped series every factor is 1.
+
+    Configurations are timed interleaved in random order, so the values timed just before
+    and after one are of other configurations.  On a shared host a slow spell (a
+    neighbour's memory traffic, a busy sibling thread) outlasts a value and slows the
+    values around it alike: the model is ``log v = m_config + z(t) + e``.  z at a value is
+    the median of the log-residuals ``log v - m`` of the DRIFT_NEIGHBOURS values on each
+    side in time (those within DRIFT_MAX_GAP_S, of other configurations), and m is each
+    configuration's median of ``log v - z``, the two refined in turn DRIFT_ITERATIONS
+    times.  On a noisy AMD EPYC host (2026-12-03), 69 configurations x 12 values: lag-1
+    correlation of the residuals 0.63; the medians of two halves of each series differ
+    by 3.0% instead of 7.3% (alternate values) and 4.9% instead of 11.0% (first and
+    second half) with the factors divided out.
+    """
+    names = [n for n in series]
+    logs, ids, times = [], [], []
+    out = {}
+    for k, name in enumerate(names):
+        values, stamps = series[name]
+        v = np.asarray(values, dtype=np.float64)
+        out[name] = np.ones(v.shape[0])
+        if stamps is None or len(stamps) == 0 or v.shape[0] == 0:
+            continue
+        t = np.asarray(stamps, dtype=np.float64)
+        if t.shape != v.shape:
+            raise ValueError(f"drift_factors: {name!r} has {v.shape[0]} values and {t.shape[0]} stamps")
+        if not (np.all(np.isfinite(v)) and np.all(v > 0) and np.all(np.isfinite(t))):
+            raise ValueError(f"drift_factors: {name!r} needs positive finite values and finite stamps")
+        logs.append(np.log(v))
+        ids.append(np.full(v.shape[0], k))
+        times.append(t)
+    if len(logs) < DRIFT_MIN_SERIES:
+        return out
+    lv, cid, ts = np.concatenate(logs), np.concatenate(ids), np.concatenate(times)
+    order = np.argsort(ts, kind="stable")
+    lv, cid, ts = lv[order], cid[order], ts[order]
+    n = lv.shape[0]
+    # neighbours of each value in time: offsets -w..w but 0, within the gap
+    w = DRIFT_NEIGHBOURS
+    pos = np.arange(n)[:, None] + np.array([o for o in range(-w, w + 1) if o != 0])[None, :]
+    valid = (pos >= 0) & (pos < n)
+    pos = np.clip(pos, 0, n - 1)
+    valid &= np.abs(ts[pos] - ts[:, None]) <= DRIFT_MAX_GAP_S
+    valid &= cid[pos] != cid[:, None]  # other configurations only
+    z = np.zeros(n)
+    for _ in range(DRIFT_ITERATIONS):
+        m = np.zeros(int(cid.max()) + 1)
+        for k in np.unique(cid):
+            m[k] = np.median((lv - z)[cid == k])
+        res = np.where(valid, (lv - m[cid])[pos], np.nan)
+        has = valid.any(axis=1)
+        z = np.zeros(n)
+        z[has] = np.nanmedian(res[has], axis=1)
+    factors = np.exp(z)
+    back = np.empty(n)
+    back[order] = factors
+    cid_back = np.empty(n, dtype=int)
+    cid_back[order] = cid
+    for k, name in enumerate(names):
+        sel = cid_back == k
+        if sel.any():
+            out[name] = back[sel]
+    return out
+
+
 @dataclass
 class Measurement:
     """Timings of one configuration.
@@ -135,6 +223,8 @@ class Measurement:
     timer_resolution_ns : float, effective timer resolution used for checks.
     warmups_ns : list of float, discarded warm-up values, ns per loop.
     notes : list of str, events recorded while measuring (e.g. loop cap hit).
+    stamps_s : list of float, when each value ended (seconds of ``time.time()``), one per
+        value; empty for values measured without stamps.  :func:`drift_factors` reads them.
 
     Derived (properties): ``median`` and ``mad`` (ns per loop), ``sigma``
     (= MAD_TO_SIGMA * mad), ``rel_spread`` (= sigma / median), ``complete``,
@@ -147,6 +237,7 @@ class Measurement:
     timer_resolution_ns: float = 1.0
     warmups_ns: list[float] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    stamps_s: list[float] = field(default_factory=list)
 
     @property
     def median(self) -> float:
@@ -213,6 +304,7 @@ class Measurement:
             "timer_resolution_ns": float(self.timer_resolution_ns),
             "warmups_ns": [float(v) for v in self.warmups_ns],
             "notes": list(self.notes),
+            "stamps_s": [float(t) for t in self.stamps_s],
             "median_ns": self.median if n else None,
             "mad_ns": self.mad if n else None,
             "warnings": self.warnings,
@@ -230,6 +322,12 @@ class Measurement:
             raise ValueError(f"bad measurement record: loops = {loops} < 1")
         if not all(math.isfinite(v) and v >= 0 for v in values):
             raise ValueError("bad measurement record: values_ns must be finite and >= 0")
+        try:
+            stamps = [float(t) for t in d.get("stamps_s", [])]
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"bad measurement record: stamps_s: {exc!r}") from exc
+        if stamps and (len(stamps) != len(values) or not all(math.isfinite(t) for t in stamps)):
+            raise ValueError("bad measurement record: stamps_s must hold one finite time per value")
         return cls(
             loops=loops,
             values_ns=values,
@@ -237,6 +335,7 @@ class Measurement:
             timer_resolution_ns=float(d.get("timer_resolution_ns", 1.0)),
             warmups_ns=[float(v) for v in d.get("warmups_ns", [])],
             notes=[str(s) for s in d.get("notes", [])],
+            stamps_s=stamps,
         )
 
 
@@ -524,6 +623,7 @@ def measure(
     timer_resolution_ns: float | None = None,
     clock: Callable[[], float] = time.monotonic,
     prime: bool = False,
+    stamp: Callable[[], float] = time.time,
 ) -> dict[str, Measurement]:
     """Time every configuration with calibrated loops, warm-ups and interleaved rounds.
 
@@ -551,6 +651,9 @@ def measure(
         so that a value starts from the caches as the configuration's own calls leave
         them, not as the configuration timed before it left them (interleaving makes
         every value's first loop cold otherwise).
+    stamp : the clock whose reading after each value goes into ``Measurement.stamps_s``
+        (seconds; the wall clock by default, so that the values of a resumed run, in
+        another process, are placed in time with the earlier ones).
 
     A run callable with a ``next_value()`` method has it called before each of its
     values and warm-ups (before the priming call): :class:`Copies` moves to its next
@@ -612,7 +715,7 @@ def measure(
         total = warmups * len(ready) + sum(need.values())
         done = 0
 
-        def one(name: str, sink: list[float], label: str) -> bool:
+        def one(name: str, sink: list[float], label: str, stamps: list | None = None) -> bool:
             nonlocal done
             if stop():
                 return False
@@ -624,6 +727,8 @@ def measure(
                 _call(name, configs[name], 1)
             elapsed_ns = _call(name, configs[name], m.loops)
             sink.append(elapsed_ns / m.loops)
+            if stamps is not None:
+                stamps.append(float(stamp()))
             done += 1
             report(done, total, label)
             return True
@@ -641,7 +746,10 @@ def measure(
                 name = todo[i]
                 m = results[name]
                 label = f"value {len(m.values_ns) + 1}/{m.target_values} {name}"
-                if not one(name, m.values_ns, label):
+                if len(m.stamps_s) != len(m.values_ns):  # values resumed from a record without stamps
+                    m.stamps_s = []
+                stamps = m.stamps_s if len(m.stamps_s) == len(m.values_ns) else None
+                if not one(name, m.values_ns, label, stamps):
                     return results
     except KeyboardInterrupt as exc:
         if isinstance(exc, MeasurementInterrupted):

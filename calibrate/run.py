@@ -179,7 +179,12 @@ def holdout_names(configs, seed: int) -> set:
 
 def records(configs, timings: dict, held: set, cache_size: int | None = None) -> list:
     """JSON records of the configurations with their values; with ``cache_size`` (bytes), an
-    in-context record also carries ``misses``, the memory effect's count (models/memory.py)."""
+    in-context record also carries ``misses``, the memory effect's count (models/memory.py).
+
+    A series timed with stamps keeps its values as timed in ``raw_values_ns`` and when each
+    ended in ``stamps_s``; its ``values_ns``, what every fit reads, are those over the host's
+    common slowdown at the time (:func:`calibrate.calfile.apply_drift`).  A series' warnings
+    describe its values as timed."""
     out = []
     for c in configs:
         rec = c.record()
@@ -187,11 +192,14 @@ def records(configs, timings: dict, held: set, cache_size: int | None = None) ->
             rec["misses"] = float(lines_beyond_cache(c.steps, c.tests, c.memory_bytes, cache_size))
         m = timings.get(c.name)
         rec["values_ns"] = list(m.values_ns) if m else []
+        if m and m.values_ns and len(m.stamps_s) == len(m.values_ns) and min(m.values_ns) > 0:
+            rec["raw_values_ns"] = list(m.values_ns)
+            rec["stamps_s"] = list(m.stamps_s)
         rec["loops"] = int(m.loops) if m else 0
         rec["warnings"] = m.warnings if m else []
         rec["held_back"] = c.name in held
         out.append(rec)
-    return out
+    return calfile.apply_drift(out)
 
 
 def _priors(isolated):
@@ -269,14 +277,20 @@ def rel_spread(values_ns) -> float:
     return Measurement(loops=1, values_ns=list(values_ns)).rel_spread
 
 
-def spread_summary(spreads, n_configs: int) -> str:
+def spread_summary(spreads, n_configs: int, detrended=None) -> str:
     """One warning for every configuration whose values spread more than the protocol's
     threshold (each keeps its own warning in the file's measurements): on a noisy host
-    most do, and a line each would bury the other warnings."""
+    most do, and a line each would bury the other warnings.  ``detrended``: the same
+    configurations' spreads with the host's common slowdown divided out, whose median
+    the warning adds."""
     s = np.sort(np.asarray(spreads, dtype=float))
+    after = ""
+    if detrended is not None and len(detrended):
+        after = (f"; {100 * float(np.median(detrended)):.0f}% with the host's common slowdown "
+                 "divided out, as the fits see them")
     return (f"large spread in {s.size} of {n_configs} configurations: scaled MAD {100 * s[0]:.0f}-{100 * s[-1]:.0f}% "
-            f"of the median (median {100 * float(np.median(s)):.0f}%; threshold {100 * REL_SPREAD_WARN:.0f}%); "
-            "the host may be busy or noisy (each configuration's warnings are in the file's measurements)")
+            f"of the median (median {100 * float(np.median(s)):.0f}%; threshold {100 * REL_SPREAD_WARN:.0f}%"
+            f"{after}); the host may be busy or noisy (each configuration's warnings are in the file's measurements)")
 
 
 def fit_reserve(stage_fit_s: float, pooled_fit_s: float) -> float:
@@ -465,7 +479,7 @@ def refit_calibration(cal, *, seed: int = 0) -> tuple[dict, list]:
     the held-back and cross-validated errors the file reports (``meta``), so that they describe
     the new fit, not the old one.  Returns (validated calibration, warnings)."""
     cal = calfile.validate(calfile._plain(cal))
-    recs = cal["measurements"]
+    recs = calfile.apply_drift(cal["measurements"])
     warnings = []
     if any(r["kind"] == "isolated" and r["values_ns"] for r in recs):
         isolated, iso_warning = _isolated_fit(recs, seed)
@@ -597,18 +611,20 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
         if iso_warning:
             warnings.append(iso_warning)
         cut = 0
-        spreads = []
+        spreads, detrended = [], []
         for r in recs:
             for w in r["warnings"]:
                 if "stopped early" in w:  # the budget's deadline, reported once below
                     cut += 1
                     continue
                 if w.startswith("large spread"):  # one line for all of them, below
-                    spreads.append(rel_spread(r["values_ns"]))
+                    spreads.append(rel_spread(r.get("raw_values_ns", r["values_ns"])))
+                    if "raw_values_ns" in r:
+                        detrended.append(rel_spread(r["values_ns"]))
                     continue
                 warnings.append(f"{r['name']}: {w}")
         if spreads:
-            warnings.append(spread_summary(spreads, len(recs)))
+            warnings.append(spread_summary(spreads, len(recs), detrended))
         if cut:
             lengths = sorted(len(r["values_ns"]) for r in recs)
             warnings.append(f"the budget ended the last stage early: {cut} of {len(recs)} configurations have "

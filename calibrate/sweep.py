@@ -62,6 +62,8 @@ SWEEP_WARMUPS = 1
 #: Builds of every grid the values are spread over (see :func:`sweep`), and whether each
 #: value is primed with one untimed call (see :func:`calibrate.protocol.measure`).
 SWEEP_BUILDS = 4
+#: Whether a sweep's values have the host's common slowdown divided out (see :func:`sweep`).
+SWEEP_DRIFT_OUT = True
 SWEEP_PRIME = True
 #: A spec whose top level would exceed this many cells is not built (memory and time).
 MAX_SWEEP_CELLS = 2 ** 25
@@ -265,10 +267,17 @@ def _counts(grid: Grid, origins, directions) -> dict:
                 memory_bytes=int(info["memory_bytes"]))
 
 
-def _summary(m: protocol.Measurement, n_rays: int) -> dict:
-    values = np.asarray(m.values_ns, dtype=np.float64) / n_rays
+def _summary(m: protocol.Measurement, n_rays: int, drift=None) -> dict:
+    """A grid's values per ray, median and MAD; with ``drift`` (the factors of
+    :func:`calibrate.protocol.drift_factors`), ``values_ns`` are those over the host's common
+    slowdown at their time, and the values as timed are kept in ``raw_values_ns``."""
+    raw = np.asarray(m.values_ns, dtype=np.float64) / n_rays
+    values = raw if drift is None else raw / np.asarray(drift, dtype=np.float64)
     med, mad = protocol.median_mad(values)
-    return dict(median_ns=med, mad_ns=mad, values_ns=values.tolist(), loops=int(m.loops), warnings=m.warnings)
+    out = dict(median_ns=med, mad_ns=mad, values_ns=values.tolist(), loops=int(m.loops), warnings=m.warnings)
+    if drift is not None:
+        out["raw_values_ns"] = raw.tolist()
+    return out
 
 
 def measure_time_per_ray(scene: Scene, spec_or_grid, origins, directions, *, rounds: int = SWEEP_ROUNDS,
@@ -311,7 +320,8 @@ def sweep(scene: Scene, specs: Sequence, rays, *, rounds: int = SWEEP_ROUNDS, bu
           min_time: float = SWEEP_MIN_VALUE_NS * 1e-9, seed: int = 0, mailbox: bool = False,
           clock: str = DEFAULT_CLOCK, prime: bool = SWEEP_PRIME,
           progress: Callable[[int, int, str], None] | None = None,
-          status: Callable[[str], None] | None = None, required: Sequence[int] = ()) -> list[dict]:
+          status: Callable[[str], None] | None = None, required: Sequence[int] = (),
+          drift_out: bool = SWEEP_DRIFT_OUT) -> list[dict]:
     """Build, count and time several grids on one ray batch, interleaved.
 
     specs : GridSpecs or built Grids; rays : (origins, directions), (n, 3) each.
@@ -330,6 +340,10 @@ def sweep(scene: Scene, specs: Sequence, rays, *, rounds: int = SWEEP_ROUNDS, bu
     as it is in every build.  ``prime`` calls a grid once, untimed, before each of its
     values (:func:`calibrate.protocol.measure`), as ``calibrate run`` does; primed, the
     warm-ups are run on the first build only, else on every build.
+
+    ``drift_out`` : divide the host's common slowdown out of each value
+    (:func:`calibrate.protocol.drift_factors`: the grids timed just before and after a
+    value estimate it); the values as timed stay in ``raw_values_ns``.
 
     ``required`` : indices of specs that must be built: when one is skipped the sweep
     raises ``ValueError`` at once (before building the rest).
@@ -415,8 +429,10 @@ def sweep(scene: Scene, specs: Sequence, rays, *, rounds: int = SWEEP_ROUNDS, bu
                          min_value_ns=max(1, int(min_time * 1e9)), progress=report, into=measured, prime=prime)
         ticks[:] = [ticks[0] + ticks[1], 0]
         del configs  # the grids are freed before the next build
+    drift = protocol.drift_factors({k: (m.values_ns, m.stamps_s) for k, m in measured.items()
+                                    if m.values_ns and min(m.values_ns) > 0}) if drift_out else {}
     for key, m in measured.items():
-        out[int(key)].update(_summary(m, n_rays))
+        out[int(key)].update(_summary(m, n_rays, drift.get(key)))
     return out
 
 

@@ -192,6 +192,12 @@ BAD_OBJECTS = [
     ("bad resolution", _set("measurements.1.resolution", [0, 4, 4]), r"measurements\[1\]\.resolution\[0\]: must be a positive integer"),
     ("not converged", _set("diagnostics.converged", False), r"diagnostics\.converged: is not true"),
     ("fingerprint not object", _set("fingerprint", "x86"), r"fingerprint: must be a JSON object, got string"),
+    ("raw values without stamps", _set("measurements.1.raw_values_ns", [1.0] * 5),
+     r"measurements\[1\]: raw_values_ns and stamps_s come together"),
+    ("stamps for fewer values", lambda c: _set("measurements.1.stamps_s", [1.0, 2.0])(
+        _set("measurements.1.raw_values_ns", [1.0] * 5)(c)), r"measurements\[1\]\.stamps_s: has 2 entries for 5 values"),
+    ("raw value not positive", lambda c: _set("measurements.1.stamps_s", [1.0] * 5)(
+        _set("measurements.1.raw_values_ns", [0.0] * 5)(c)), r"measurements\[1\]\.raw_values_ns\[0\]: time must be positive"),
 ]
 
 
@@ -351,3 +357,27 @@ def test_read_only_directory(tmp_path):
         assert (ro / "calibration.json").read_text() == "old\n"
     finally:
         os.chmod(ro, 0o755)
+
+
+def test_apply_drift_divides_the_common_slowdown_out_of_stamped_records(good_cal):
+    """Records with raw values and stamps get values_ns = raw / the neighbours' slowdown
+    (recomputed from the raw values whatever values_ns held); records without keep theirs."""
+    recs = copy.deepcopy(good_cal["measurements"])
+    rng = np.random.default_rng(7)
+    order = rng.permutation([(j, k) for j in range(len(recs) - 1) for k in range(N_REPEATS)])
+    slow = np.exp(0.3 * np.sin(np.arange(len(order)) / 6.0))  # a slowdown lasting many values
+    stamps = {j: [0.0] * N_REPEATS for j in range(len(recs) - 1)}
+    raw = {j: [0.0] * N_REPEATS for j in range(len(recs) - 1)}
+    for t, (j, k) in enumerate(order):
+        stamps[j][k] = 0.01 * t
+        raw[j][k] = recs[j]["values_ns"][k] * slow[t]
+    for j in stamps:
+        recs[j].update(raw_values_ns=raw[j], stamps_s=stamps[j], values_ns=[1.0] * N_REPEATS)
+    untouched = list(recs[-1]["values_ns"])
+    calfile.apply_drift(recs)
+    assert recs[-1]["values_ns"] == untouched and "raw_values_ns" not in recs[-1]
+    spread = lambda v: float(np.median(np.abs(np.log(v) - np.median(np.log(v)))))
+    before = np.median([spread(raw[j]) for j in raw])
+    after = np.median([spread(recs[j]["values_ns"]) for j in raw])
+    assert before > 0.1 and after < 0.5 * before
+    calfile.validate(dict(good_cal, measurements=recs))  # what apply_drift leaves is a valid file

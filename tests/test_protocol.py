@@ -16,6 +16,7 @@ from calibrate.protocol import (
     MeasurementInterrupted,
     calibrate_loops,
     cpu_times,
+    drift_factors,
     idlest_cpu,
     measure,
     median_mad,
@@ -507,3 +508,107 @@ def test_pin_is_a_noop_without_affinity_support(monkeypatch):
     pin = pin_to_one_core()
     assert pin.core is None and "not pinned" in pin.note
     pin.restore()  # harmless
+
+
+# -- the host's common slowdown (drift_factors) ----------------------------------------
+
+
+def _drifting_host(seed, n_configs=40, rounds=10, noise=0.02, spell=0.25):
+    """Interleaved values of n_configs configurations on a host whose slowdown z(t) is an
+    AR(1) process (slow spells of some 20 values), plus iid noise; returns
+    (series {name: (values, stamps)}, planted medians, planted slowdown per value)."""
+    rng = np.random.default_rng(seed)
+    med = {f"c{k}": float(np.exp(rng.uniform(np.log(1e4), np.log(1e7)))) for k in range(n_configs)}
+    names = list(med)
+    vals = {n: [] for n in names}
+    stamps = {n: [] for n in names}
+    slow = {n: [] for n in names}
+    z, t = 0.0, 0.0
+    for _ in range(rounds):
+        for i in rng.permutation(n_configs):
+            z = 0.95 * z + spell * np.sqrt(1 - 0.95**2) * rng.standard_normal()
+            t += 0.02
+            n = names[i]
+            vals[n].append(med[n] * np.exp(z + noise * rng.standard_normal()))
+            stamps[n].append(t)
+            slow[n].append(np.exp(z))
+    return {n: (vals[n], stamps[n]) for n in names}, med, slow
+
+
+@pytest.mark.parametrize("i", range(6))
+def test_drift_factors_recover_a_planted_common_slowdown(i):
+    """Slow spells of 25% (log sd) lasting ~20 values, 2% noise of each value's own: the
+    factors follow the planted slowdown and the corrected medians sit near the truth."""
+    series, med, slow = _drifting_host(2000 + i)
+    f = drift_factors(series)
+    planted = np.concatenate([np.log(slow[n]) for n in series])
+    got = np.concatenate([np.log(f[n]) for n in series])
+    assert np.corrcoef(planted, got)[0, 1] > 0.9
+    # each median's error, centred: the slowdown is known up to a constant factor
+    def errors(values):
+        e = np.array([np.log(np.median(values(n)) / med[n]) for n in series])
+        return np.abs(e - np.median(e))
+    raw_err = errors(lambda n: series[n][0])
+    cor_err = errors(lambda n: np.asarray(series[n][0]) / f[n])
+    assert np.median(cor_err) < 0.7 * np.median(raw_err)
+    spread = lambda v: MAD_TO_SIGMA * median_mad(np.log(v))[1]
+    assert np.median([spread(np.asarray(series[n][0]) / f[n]) for n in series]) < 0.08
+    assert np.median([spread(series[n][0]) for n in series]) > 0.12
+
+
+def test_drift_factors_leave_a_quiet_host_alone():
+    series, med, slow = _drifting_host(2010, spell=0.0)
+    f = drift_factors(series)
+    assert max(abs(np.log(f[n])).max() for n in f) < 0.05
+
+
+def test_drift_factors_need_three_stamped_series_and_near_neighbours():
+    series, _, _ = _drifting_host(2020, n_configs=5)
+    names = list(series)
+    two = {n: series[n] for n in names[:2]}
+    assert all(np.all(f == 1.0) for f in drift_factors(two).values())
+    # series without stamps get ones and inform no other
+    partial = {n: (series[n][0], [] if k >= 2 else series[n][1]) for k, n in enumerate(names)}
+    assert all(np.all(f == 1.0) for f in drift_factors(partial).values())
+    # a value far in time from every other has no neighbour: factor 1
+    lone = dict(series)
+    v, t = list(series[names[0]][0]), list(series[names[0]][1])
+    lone[names[0]] = (v + [v[0] * 3], t + [t[-1] + 100.0])
+    f = drift_factors(lone)
+    assert f[names[0]][-1] == 1.0 and f[names[0]].shape == (len(v) + 1,)
+
+
+def test_drift_factors_reject_mismatched_or_bad_input():
+    series, _, _ = _drifting_host(2030, n_configs=4)
+    n = next(iter(series))
+    bad = dict(series)
+    bad[n] = (series[n][0], series[n][1][:-1])
+    with pytest.raises(ValueError, match="stamps"):
+        drift_factors(bad)
+    bad[n] = ([0.0] + list(series[n][0][1:]), series[n][1])
+    with pytest.raises(ValueError, match="positive"):
+        drift_factors(bad)
+
+
+def test_measure_stamps_each_value_and_round_trips_them():
+    stamps = iter(range(10_000))
+    runs = {n: FakeRun(n) for n in "abc"}
+    got = measure(runs, rng=np.random.default_rng(3), rounds=4, warmups=1, min_value_ns=MIN_VALUE_NS,
+                  timer_resolution_ns=RES_NS, stamp=lambda: float(next(stamps)))
+    every = sorted(t for m in got.values() for t in m.stamps_s)
+    assert all(len(m.stamps_s) == len(m.values_ns) == 4 for m in got.values())
+    assert every == sorted(set(every)) and all(np.all(np.diff(m.stamps_s) > 0) for m in got.values())
+    back = Measurement.from_dict(json.loads(json.dumps(got["a"].to_dict())))
+    assert back.stamps_s == got["a"].stamps_s
+    with pytest.raises(ValueError, match="stamps_s"):
+        Measurement.from_dict(dict(got["a"].to_dict(), stamps_s=[1.0]))
+
+
+def test_values_resumed_without_stamps_stay_unstamped():
+    """A series resumed from a record without stamps cannot be placed in time: it takes no
+    stamps for its new values either (a partial series of stamps would misplace them)."""
+    into = {"a": Measurement(loops=1, values_ns=[5.0, 6.0], target_values=2)}
+    got = measure({"a": FakeRun("a"), "b": FakeRun("b")}, rng=np.random.default_rng(4), rounds=4, warmups=0,
+                  min_value_ns=MIN_VALUE_NS, timer_resolution_ns=RES_NS, into=into)
+    assert len(got["a"].values_ns) == 4 and got["a"].stamps_s == []
+    assert len(got["b"].stamps_s) == 4

@@ -97,6 +97,16 @@ def test_run_writes_a_valid_calibration(small_suite, tmp_path):
     for ray_set in fitted:
         assert cal["by_rays"][ray_set]["diagnostics"]["converged"] is True
     assert not run.partial_path(out).exists(), "a finished run leaves no partial file"
+    # every series keeps its values as timed and when; what the fits read is those over the host's
+    # common slowdown, which the file's raw values and stamps give again
+    timed = [m for m in cal["measurements"] if m["values_ns"]]
+    assert timed and all(len(m["raw_values_ns"]) == len(m["stamps_s"]) == len(m["values_ns"]) for m in timed)
+    stamps = sorted(t for m in timed for t in m["stamps_s"])
+    assert len(set(stamps)) == len(stamps)
+    again_values = calfile.apply_drift(json.loads(json.dumps(cal))["measurements"])
+    flat = lambda recs: [v for m in recs for v in m["values_ns"]]
+    assert flat(again_values) == pytest.approx(flat(cal["measurements"]))
+    assert any(m["values_ns"] != m["raw_values_ns"] for m in timed)
     # the stored measurements re-fit without measuring again
     again = calfile.refit(cal, seed=3)
     assert again["constants"]["ratio"]["median"] > 0
@@ -104,7 +114,10 @@ def test_run_writes_a_valid_calibration(small_suite, tmp_path):
     stale = json.loads(json.dumps(cal))
     stale["meta"].update(holdout_mare=0.999, cv_mare=0.999)
     stale["isolated"] = {}
+    for m in stale["measurements"]:  # values_ns are derived: a re-fit derives them again
+        m["values_ns"] = [1.0] * len(m["values_ns"])
     new, warnings = run.refit_calibration(stale, seed=3)
+    assert flat(new["measurements"]) == pytest.approx(flat(cal["measurements"]))
     assert new["meta"]["holdout_mare"] == pytest.approx(cal["meta"]["holdout_mare"], rel=0.5, abs=0.02)
     assert new["meta"]["cv_mare"] == pytest.approx(cal["meta"]["cv_mare"], rel=0.5, abs=0.02)
     assert set(new["isolated"]) == set(cal["isolated"])
@@ -442,6 +455,7 @@ def test_slow_fits_end_measuring_earlier(small_suite, tmp_path, monkeypatch):
 def test_large_spreads_are_one_warning():
     line = run.spread_summary([0.12, 0.30, 0.16], 40)
     assert line.startswith("large spread in 3 of 40 configurations: scaled MAD 12-30% of the median (median 16%")
+    assert "; 6% with the host's common slowdown divided out" in run.spread_summary([0.12, 0.30], 40, [0.05, 0.07])
     values = [100.0, 100.0, 130.0, 70.0, 100.0]  # MAD 0 about the median: spread 0
     assert run.rel_spread(values) == 0.0
     assert run.rel_spread([90.0, 100.0, 110.0]) == pytest.approx(1.482602218505602 * 10 / 100)

@@ -230,3 +230,30 @@ def test_a_required_grid_that_cannot_be_built_stops_the_sweep_at_once(cylinder):
     with pytest.raises(ValueError, match="cannot be measured"):
         sweep(cylinder, [GridSpec("uniform", [(side, side, side)]), GridSpec("uniform", [(2, 2, 2)])],
               _rays(cylinder), required=(0,), **FAST)
+
+
+def test_a_sweeps_values_have_the_common_slowdown_divided_out(cylinder, monkeypatch):
+    """Each value is the one timed over the drift factor protocol.drift_factors gives for
+    the sweep's series (kept as raw_values_ns); with drift_out=False the values are as timed."""
+    from calibrate import protocol
+
+    seen = {}
+    real = protocol.drift_factors
+
+    def spy(series):
+        seen.update(series)
+        return real(series)
+
+    monkeypatch.setattr(protocol, "drift_factors", spy)
+    o, d = _rays(cylinder, seed=1)
+    specs = [GridSpec("uniform", [(s, s, 4 * s)]) for s in (2, 3, 4, 5)]
+    points = sweep(cylinder, specs, (o, d), seed=1, rounds=4, min_time=1e-4)
+    factors = real(seen)
+    assert len(seen) == len(specs)
+    for key, p in zip(sorted(seen, key=int), points):
+        raw = np.asarray(p["raw_values_ns"])
+        assert raw * N_RAYS == pytest.approx(np.asarray(seen[key][0]))
+        assert np.asarray(p["values_ns"]) == pytest.approx(raw / factors[key])
+        assert p["median_ns"] == pytest.approx(float(np.median(p["values_ns"])))
+    plain = sweep(cylinder, specs, (o, d), seed=1, rounds=4, min_time=1e-4, drift_out=False)
+    assert all("raw_values_ns" not in p for p in plain)
