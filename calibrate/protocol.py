@@ -746,8 +746,7 @@ def measure(
                 name = todo[i]
                 m = results[name]
                 label = f"value {len(m.values_ns) + 1}/{m.target_values} {name}"
-                if len(m.stamps_s) != len(m.values_ns):  # values resumed from a record without stamps
-                    m.stamps_s = []
+                # values resumed from a record without stamps cannot be placed in time: none get stamps
                 stamps = m.stamps_s if len(m.stamps_s) == len(m.values_ns) else None
                 if not one(name, m.values_ns, label, stamps):
                     return results
