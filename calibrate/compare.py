@@ -35,6 +35,7 @@ from . import predict as _predict
 from . import sweep as _sweep
 from ._grid import Scene
 from ._io import UserError, atomic_write_bytes, check_writable
+from .protocol import median_mad
 from .sweep import GridSpec
 
 #: Sweep points per curve (log-spaced per-axis factors) and the sweep's span each way.
@@ -57,6 +58,13 @@ NESTED_BASELINES = {"manta-L2-top": (8.0, None), "kalojanov-2level": (1.2, (1.0,
 #: are taken as exchangeable), takes their median, finds each curve's minimum as the
 #: measurement does and forms the penalty; the interval is the central 95% of the
 #: replicates.  On a noisy host a penalty of a few per cent can be the noise's.
+#: After the sweep, the grids that decide the penalties -- each curve's points in its minimum's
+#: fit window (:func:`calibrate.sweep.fit_minimum`) and the predicted grid -- are built again
+#: (REFINE_BUILDS times) and timed REFINE_ROUNDS more times, interleaved, their values joining
+#: the sweep's.  On a noisy host a point's median is uncertain by 3-5% after the sweep's
+#: values, and the predicted point and the curve's minimum are the two the penalty compares.
+REFINE_ROUNDS = 16
+REFINE_BUILDS = 2
 PENALTY_BOOTSTRAP = 400
 PENALTY_BOOTSTRAP_SEED = 12345
 #: Plot: figure size per scene panel (inches) and resolution.
@@ -115,7 +123,7 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
                   rounds: int = _sweep.SWEEP_ROUNDS, builds: int = _sweep.SWEEP_BUILDS,
                   min_time: float = _sweep.SWEEP_MIN_VALUE_NS * 1e-9,
                   prime: bool = _sweep.SWEEP_PRIME, seed: int = 0, clock: str = _sweep.DEFAULT_CLOCK,
-                  progress=None, status=None) -> dict:
+                  refine_rounds: int = REFINE_ROUNDS, progress=None, status=None) -> dict:
     """Measured sweep, predicted curve and penalties of one scene (module docstring).
 
     scene : Scene, built-in name or mesh path; constants / samples / ratio : as
@@ -125,7 +133,8 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
     rounds, builds, min_time : values per grid, the builds of every grid they are spread
     over (:func:`calibrate.sweep.sweep`) and seconds per value; prime : one untimed
     call before each value (as :func:`calibrate.sweep.sweep`); clock : "thread" (the timing
-    thread's CPU time) or "wall" (the kernel's monotonic clock, as ``calibrate run`` times).
+    thread's CPU time) or "wall" (the kernel's monotonic clock); refine_rounds : values added to
+    the grids that decide the penalties (REFINE_ROUNDS; 0: none).
 
     Returns a JSON-ready dict: ``scene``, ``triangles``, ``units``, ``penalty``,
     ``penalty_ci95`` (its bootstrap 95% interval, :func:`penalty_intervals`),
@@ -175,6 +184,15 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
                                 required=(index[chosen],), clock=clock)
     except ValueError as exc:
         raise UserError(f"{scene.name}: the predicted grid cannot be measured ({exc})") from None
+    if refine_rounds:
+        deciding = _deciding_grids(factors, curve_specs, index, measured, chosen)
+        say(f"{scene.name}: timing the {len(deciding)} grids that decide the penalty again")
+        again = _sweep.sweep(scene, [unique[i] for i in deciding], (o, d), rounds=int(refine_rounds),
+                             builds=min(REFINE_BUILDS, int(refine_rounds)), min_time=min_time, seed=seed + 1,
+                             prime=prime, progress=progress, status=lambda text: say(f"{scene.name}: {text}"),
+                             clock=clock)
+        for i, extra in zip(deciding, again):
+            _join_values(measured[i], extra)
     stats = scene.stats
     terms = _predict.analytic_uniform_plan(stats, k, False)[0]["terms"]
     notes = list(k.notes)
@@ -265,6 +283,35 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
         best_measured_resolution=best_curve["fit"]["resolution"], best_measured_levels=best_curve["levels"],
         best_measured_time_ns=t_best, best_measured_factor=best_curve["fit"]["factor"],
         baselines=out_base, curves=curves, points=all_points, t_step_scale_ns=t_step_ns, notes=notes))
+
+
+def _deciding_grids(factors, curve_specs: dict, index: dict, measured: list, chosen) -> list[int]:
+    """Sweep indices of the grids that decide the penalties: the predicted grid, and each curve's
+    points in the fit window of its minimum."""
+    out = {index[chosen]}
+    for specs in curve_specs.values():
+        ok = [(f, index[spec]) for f, spec in zip(factors, specs) if measured[index[spec]].get("median_ns") is not None]
+        if len(ok) >= MIN_POINTS:
+            rows = [measured[i] for _, i in ok]
+            fit = _sweep.fit_minimum([f for f, _ in ok], [m["median_ns"] for m in rows],
+                                     mads=[m["mad_ns"] for m in rows], counts=[len(m["values_ns"]) for m in rows])
+            lo, hi = fit["window"]
+            out.update(i for _, i in ok[lo:hi + 1])
+    return sorted(i for i in out if measured[i].get("median_ns") is not None)
+
+
+def _join_values(row: dict, extra: dict) -> None:
+    """Add a second timing's values of one grid to its sweep row (median, MAD, builds again)."""
+    if extra.get("median_ns") is None:
+        return
+    row["values_ns"] = list(row["values_ns"]) + list(extra["values_ns"])
+    if "raw_values_ns" in row and "raw_values_ns" in extra:
+        row["raw_values_ns"] = list(row["raw_values_ns"]) + list(extra["raw_values_ns"])
+    else:
+        row.pop("raw_values_ns", None)
+    row["median_ns"], row["mad_ns"] = (float(x) for x in median_mad(row["values_ns"]))
+    row["builds"] = row.get("builds", 0) + extra.get("builds", 0)
+    row["warnings"] = list(row.get("warnings", [])) + [w for w in extra.get("warnings", []) if w not in row.get("warnings", [])]
 
 
 def penalty_intervals(values: dict, curves: list, choices: dict, *, replicates: int = PENALTY_BOOTSTRAP,
@@ -433,6 +480,9 @@ def add_parser(sub):
     sp.add_argument("--builds", type=_count_arg("--builds", 1), default=_sweep.SWEEP_BUILDS, metavar="N",
                     help=f"builds of every grid the values are spread over: where a grid lies in memory moves its "
                          f"time by a few per cent (default {_sweep.SWEEP_BUILDS})")
+    sp.add_argument("--refine-rounds", type=_count_arg("--refine-rounds", 0), default=REFINE_ROUNDS, metavar="N",
+                    help=f"values added, after the sweep, to the predicted grid and the points around each curve's "
+                         f"minimum, the grids the penalties compare (default {REFINE_ROUNDS}; 0: none)")
     sp.add_argument("--min-time", type=positive_number("--min-time"), default=_sweep.SWEEP_MIN_VALUE_NS * 1e-9,
                     metavar="SECONDS", help=f"shortest timed value (default {_sweep.SWEEP_MIN_VALUE_NS * 1e-9:g} s)")
     sp.add_argument("--clock", default=_sweep.DEFAULT_CLOCK, choices=_sweep.CLOCKS,
@@ -467,7 +517,8 @@ def cmd_compare(args) -> int:
             try:
                 results.append(compare_scene(scene, levels=args.levels, fidelity=args.fidelity, rays=args.rays,
                                              points=args.points, ray_count=args.ray_count, rounds=args.rounds,
-                                             builds=args.builds, min_time=args.min_time, clock=args.clock, progress=bar,
+                                             builds=args.builds, min_time=args.min_time, clock=args.clock,
+                                             refine_rounds=args.refine_rounds, progress=bar,
                                              status=status, **src))
             except UserError as exc:  # a scene whose grids cannot be built: the others still count
                 if len(scenes) == 1:

@@ -16,7 +16,8 @@ from calibrate.compare import BASELINE_MARKERS, compare_scene, sweep_factors
 #: the old kernels' 0.926 the prediction was 1.5-2 times too fine per axis and the minimum
 #: sat at the sweep's second point, 7% below its first (the test flaked once under load).
 RATIO = 0.2
-SHORT = ["--ratio", str(RATIO), "--points", "7", "--ray-count", "512", "--rounds", "3", "--min-time", "0.002"]
+SHORT = ["--ratio", str(RATIO), "--points", "7", "--ray-count", "512", "--rounds", "3", "--min-time", "0.002",
+         "--refine-rounds", "2"]
 SCENE_KEYS = ("penalty", "predicted_resolution", "best_measured_resolution", "baselines", "points", "curves",
               "predicted_time_ns", "best_measured_time_ns", "predicted_levels", "best_measured_levels")
 POINT_KEYS = ("levels", "factor", "resolution", "median_ns", "mad_ns", "steps", "tests", "subgrids", "cells",
@@ -112,7 +113,8 @@ def test_no_calibration_says_what_to_do(tmp_path, monkeypatch, capsys):
 
 
 def test_two_level_sweep_scales_top_and_subgrids():
-    r = compare_scene("cylinder196", ratio=RATIO, levels="2", points=3, ray_count=128, rounds=1, min_time=1e-3)
+    r = compare_scene("cylinder196", ratio=RATIO, levels="2", points=3, ray_count=128, rounds=1, min_time=1e-3,
+                      refine_rounds=1)
     (curve,) = r["curves"]
     assert curve["levels"] == 2
     subs = [p["sub_scale"] for p in curve["points"]]
@@ -156,3 +158,26 @@ def test_penalty_intervals_recover_a_planted_curve_and_widen_with_noise():
             assert widths[0] < 0.03
             assert ci["at"][0] < 0.01 and ci["at"][1] > -0.02
     assert widths[1] > 4 * widths[0]
+
+
+def test_the_grids_that_decide_the_penalty_get_more_values(short_run):
+    """The predicted grid and the points of the curve's fit window are timed refine-rounds more
+    times; the rest of the sweep keeps its rounds."""
+    _, doc, _ = short_run
+    (r,) = doc["scenes"]
+    (curve,) = r["curves"]
+    counts = [p["values"] for p in curve["points"]]
+    predicted = [p for p in curve["points"] if p["factor"] == pytest.approx(1.0)]
+    assert predicted and predicted[0]["values"] == 5
+    assert set(counts) <= {3, 5} and 3 in counts  # a window of factor 2 either side: not all 7
+    centre = curve["points"].index(predicted[0])
+    more = [i for i, c in enumerate(counts) if c == 5]
+    contiguous = lambda idx: idx == list(range(idx[0], idx[-1] + 1))
+    # one contiguous window around the minimum, the predicted grid in it or apart from it
+    assert contiguous(more) or contiguous([i for i in more if i != centre])
+
+
+def test_no_refinement_keeps_every_grid_at_its_rounds():
+    r = compare_scene("cylinder196", ratio=RATIO, levels="1", points=5, ray_count=256, rounds=2, min_time=0.002,
+                      refine_rounds=0)
+    assert {p["values"] for p in r["points"]} == {2}

@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 from calibrate import Scene
-from calibrate.compare import DEFAULT_POINTS, compare_scene, plot, summarise
+from calibrate.compare import DEFAULT_POINTS, REFINE_ROUNDS, compare_scene, plot, summarise
 from calibrate.sweep import SWEEP_BUILDS, SWEEP_ROUNDS
 from calibrate.predict import constants_from_args, resolve_constants
 from calibrate.scenes import builtin_names
@@ -58,6 +58,8 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=SWEEP_ROUNDS, help="timed values per grid")
     ap.add_argument("--builds", type=int, default=SWEEP_BUILDS, help="builds of every grid the values are spread over")
     ap.add_argument("--no-prime", action="store_true", help="no untimed call before each value")
+    ap.add_argument("--refine-rounds", type=int, default=REFINE_ROUNDS,
+                    help="values added to the grids that decide the penalties (0: none)")
     ap.add_argument("--out", default="compare_all.json")
     ap.add_argument("--plot", default=None)
     ap.add_argument("--plot-scenes", nargs="*", default=[])
@@ -85,7 +87,8 @@ def main() -> None:
           f"levels {args.levels}; fidelity "
           f"{args.fidelity}; "
           f"{args.points} points per depth; {args.rays} rays ({args.big_rays} above {args.big:,} triangles); "
-          f"{args.rounds} values per grid over {args.builds} builds{', unprimed' if args.no_prime else ''}")
+          f"{args.rounds} values per grid over {args.builds} builds{', unprimed' if args.no_prime else ''}, "
+          f"{args.refine_rounds} more for the grids that decide the penalties")
     results = []
     for name in names:
         scene = Scene.load(name)
@@ -94,7 +97,7 @@ def main() -> None:
         try:
             r = compare_scene(scene, levels=args.levels, fidelity=args.fidelity, points=args.points,
                               ray_count=n_rays, rounds=args.rounds, builds=args.builds,
-                              prime=not args.no_prime, rays=args.ray_set,
+                              prime=not args.no_prime, rays=args.ray_set, refine_rounds=args.refine_rounds,
                               **source)
         except ValueError as exc:  # e.g. the predicted grid does not fit the sweep's memory budget
             print(f"{scene.name:28s} skipped: {exc}", flush=True)
