@@ -4,7 +4,8 @@ For each scene, :func:`compare_scene` predicts the grid (:func:`calibrate.predic
 then measures real traversal time (:mod:`calibrate.sweep`) over a log-spaced sweep of
 resolutions from 1/4 to 4 times the predicted optimum per axis, for each depth it
 compares, together with the predicted grid and every baseline heuristic's grid, all in
-one interleaved measurement.  It reports
+one interleaved measurement; then the grids that decide the penalties (the predicted one and
+those around each curve's minimum) are timed again (REFINE_ROUNDS).  It reports
 
 - the measured optimum: the vertex of a smooth fit through the points near each
   curve's lowest one (:func:`calibrate.sweep.fit_minimum`), the lowest over depths;
@@ -53,11 +54,6 @@ LEVEL_CHOICES = ("1", "2", "auto")
 #: Manta RecursiveGrid (Ize et al. 2007): (8 n)^(3 / (2L + 1 - 2 depth)) cells per subgrid.
 #: Kalojanov, Billeter, Slusallek 2011: leaf grids of density 1.2 references per cell.
 NESTED_BASELINES = {"manta-L2-top": (8.0, None), "kalojanov-2level": (1.2, (1.0, 1.0))}
-#: Bootstrap replicates of a penalty's 95% interval, and their seed.  Each replicate draws
-#: every measured grid's values again with replacement (independently: values of one grid
-#: are taken as exchangeable), takes their median, finds each curve's minimum as the
-#: measurement does and forms the penalty; the interval is the central 95% of the
-#: replicates.  On a noisy host a penalty of a few per cent can be the noise's.
 #: After the sweep, the grids that decide the penalties -- each curve's points in its minimum's
 #: fit window (:func:`calibrate.sweep.fit_minimum`) and the predicted grid -- are built again
 #: (REFINE_BUILDS times) and timed REFINE_ROUNDS more times, interleaved, their values joining
@@ -65,6 +61,11 @@ NESTED_BASELINES = {"manta-L2-top": (8.0, None), "kalojanov-2level": (1.2, (1.0,
 #: values, and the predicted point and the curve's minimum are the two the penalty compares.
 REFINE_ROUNDS = 16
 REFINE_BUILDS = 2
+#: Bootstrap replicates of a penalty's 95% interval, and their seed.  Each replicate draws
+#: every measured grid's values again with replacement (independently: values of one grid
+#: are taken as exchangeable), takes their median, finds each curve's minimum as the
+#: measurement does and forms the penalty; the interval is the central 95% of the
+#: replicates.  On a noisy host a penalty of a few per cent can be the noise's.
 PENALTY_BOOTSTRAP = 400
 PENALTY_BOOTSTRAP_SEED = 12345
 #: Plot: figure size per scene panel (inches) and resolution.
