@@ -93,6 +93,7 @@ def test_plot_written(short_run):
     (["compare", "cylinder196", "--points", "many"], "--points"),
     (["compare", "cylinder196", "--levels", "4"], "--levels"),
     (["compare", "cylinder196", "--fidelity", "exact"], "--fidelity"),
+    (["compare", "cylinder196", "--refine-rounds", "-1"], "--refine-rounds must be at least 0"),
     (["compare", "cylinder196", "--plot", "{tmp}/out.svg"], ".png"),
 ])
 def test_bad_input_is_one_line_exit_2_and_no_plot(argv, fragment, tmp_path, capsys):
