@@ -426,15 +426,10 @@ def bench_scene(scene, *, constants=None, samples=None, ratio=None, batch: int =
             calls["embree"] = tracers["embree"].call(o32, d32)
         times = interleaved(calls, repeats, clock=clock)
         rates = {name: dict(rate_summary(ts, batch), rays=batch) for name, ts in times.items()}
-        paired = {}
-        if "embree" in times:
-            # per round, the contender's rate over Embree's, taken side by side: robust to a slow spell
-            e = np.asarray(times["embree"], dtype=np.float64)
-            paired = {name: float(np.median(e / np.asarray(ts, dtype=np.float64)))
-                      for name, ts in times.items() if name != "embree"}
-            paired_rounds = {name: ts for name, ts in times.items() if name != "embree"}
-        else:
-            paired_rounds = {}
+        # per round, the contender's rate over Embree's, taken side by side: robust to a slow spell
+        paired_rounds = {name: ts for name, ts in times.items() if name != "embree"} if "embree" in times else {}
+        e = np.asarray(times.get("embree", ()), dtype=np.float64)
+        paired = {name: float(np.median(e / np.asarray(ts, dtype=np.float64))) for name, ts in paired_rounds.items()}
         if "trimesh" in tracers:
             m = min(batch, TRIMESH_BATCH)
             t, prim = tracers["trimesh"].first_hits(o[:m], d[:m])

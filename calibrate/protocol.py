@@ -161,8 +161,8 @@ def drift_factors(series: Mapping[str, tuple]) -> dict[str, np.ndarray]:
     by 3.0% instead of 7.3% (alternate values) and 4.9% instead of 11.0% (first and
     second half) with the factors divided out.
     """
-    names = [n for n in series]
-    logs, ids, times = [], [], []
+    names = list(series)
+    stamped, logs, ids, times = [], [], [], []
     out = {}
     for k, name in enumerate(names):
         values, stamps = series[name]
@@ -175,6 +175,7 @@ def drift_factors(series: Mapping[str, tuple]) -> dict[str, np.ndarray]:
             raise ValueError(f"drift_factors: {name!r} has {v.shape[0]} values and {t.shape[0]} stamps")
         if not (np.all(np.isfinite(v)) and np.all(v > 0) and np.all(np.isfinite(t))):
             raise ValueError(f"drift_factors: {name!r} needs positive finite values and finite stamps")
+        stamped.append(name)
         logs.append(np.log(v))
         ids.append(np.full(v.shape[0], k))
         times.append(t)
@@ -191,24 +192,19 @@ def drift_factors(series: Mapping[str, tuple]) -> dict[str, np.ndarray]:
     pos = np.clip(pos, 0, n - 1)
     valid &= np.abs(ts[pos] - ts[:, None]) <= DRIFT_MAX_GAP_S
     valid &= cid[pos] != cid[:, None]  # other configurations only
+    has = valid.any(axis=1)  # a value without such neighbours keeps z = 0
     z = np.zeros(n)
     for _ in range(DRIFT_ITERATIONS):
         m = np.zeros(int(cid.max()) + 1)
         for k in np.unique(cid):
             m[k] = np.median((lv - z)[cid == k])
         res = np.where(valid, (lv - m[cid])[pos], np.nan)
-        has = valid.any(axis=1)
         z = np.zeros(n)
         z[has] = np.nanmedian(res[has], axis=1)
-    factors = np.exp(z)
-    back = np.empty(n)
-    back[order] = factors
-    cid_back = np.empty(n, dtype=int)
-    cid_back[order] = cid
-    for k, name in enumerate(names):
-        sel = cid_back == k
-        if sel.any():
-            out[name] = back[sel]
+    back = np.empty(n)  # the factors in the order the series were concatenated
+    back[order] = np.exp(z)
+    for name, part in zip(stamped, np.split(back, np.cumsum([a.size for a in logs])[:-1])):
+        out[name] = part
     return out
 
 

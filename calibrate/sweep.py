@@ -62,9 +62,9 @@ SWEEP_WARMUPS = 1
 #: Builds of every grid the values are spread over (see :func:`sweep`), and whether each
 #: value is primed with one untimed call (see :func:`calibrate.protocol.measure`).
 SWEEP_BUILDS = 4
+SWEEP_PRIME = True
 #: Whether a sweep's values have the host's common slowdown divided out (see :func:`sweep`).
 SWEEP_DRIFT_OUT = True
-SWEEP_PRIME = True
 #: A spec whose top level would exceed this many cells is not built (memory and time).
 MAX_SWEEP_CELLS = 2 ** 25
 #: A grid whose build would take more memory than this (bytes) is not built, and a sweep
