@@ -194,7 +194,7 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
                              clock=clock)
         for i, extra in zip(deciding, again):
             _join_values(measured[i], extra)
-    stats = scene.stats
+    stats = _predict.scene_statistics(scene)
     terms = _predict.analytic_uniform_plan(stats, k, False)[0]["terms"]
     notes = list(k.notes)
     extrapolated = _predict.extrapolation_note(k, pred["memory_bytes"])

@@ -50,6 +50,7 @@ __all__ = [
     "aimed_at_edges",
     "unique_edges",
     "mesh_bounds",
+    "box_chords",
 ]
 
 Rays = tuple[np.ndarray, np.ndarray]
@@ -199,6 +200,22 @@ def _normalise(d: np.ndarray) -> np.ndarray:
 # ----------------------------------------------------------------------------------
 # ray sets
 # ----------------------------------------------------------------------------------
+
+def box_chords(origins, directions, lo, hi) -> tuple[np.ndarray, np.ndarray]:
+    """Where lines enter and leave the box [lo, hi]: ``(t_in, t_out)``, each (n,).
+
+    The slab test per axis; a direction component of zero leaves that axis's slab
+    out (its quotients are infinite or NaN, which ``fmin``/``fmax`` pass over).  A line
+    that misses the box has ``t_in > t_out``.
+    """
+    o = np.asarray(origins, dtype=np.float64)
+    d = np.asarray(directions, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d
+        t0 = (np.asarray(lo, dtype=np.float64) - o) * inv
+        t1 = (np.asarray(hi, dtype=np.float64) - o) * inv
+    return np.fmin(t0, t1).max(axis=1), np.fmax(t0, t1).min(axis=1)
+
 
 def isotropic(
     lo, hi, n: int, seed, margin_fraction: float = ISOTROPIC_MARGIN_FRACTION_OF_DIAGONAL

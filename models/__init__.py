@@ -11,17 +11,17 @@ posterior is propagated).
 from .baselines import all_baselines, cleary_grid, kalojanov_two_level, manta_recursive_grid, pbrt_grid
 from .closed_forms import (cells_to_resolution, empirical_cells, l_level_cells, lines_cells, points_cells,
                            two_level_lines, two_level_points)
-from .effects import EFFECT_TOLERANCE, select_effects, termination_fraction
+from .effects import EFFECT_TOLERANCE, rays_stop_on_entry, select_effects, termination_fraction
 from .general import Terms, optimal_cell_size, optimal_uniform, predict_uniform, steps_per_ray
 from .memory import lines_beyond_cache, miss_fraction
 from .nested import choose_levels, nested_counts, optimal_nested
 from .portable import general_resolution, paper_resolutions, resolution_for_cells
-from .stats import SceneStats, grid_box, scene_class, scene_stats, triangle_geometry
+from .stats import SceneStats, TerminationSample, grid_box, scene_class, scene_stats, triangle_geometry
 from .uncertainty import posterior_ns, posterior_optimum
 
 __all__ = [
     # scene statistics
-    "SceneStats", "grid_box", "scene_class", "scene_stats", "triangle_geometry",
+    "SceneStats", "TerminationSample", "grid_box", "scene_class", "scene_stats", "triangle_geometry",
     # the talk's closed forms
     "points_cells", "lines_cells", "two_level_points", "two_level_lines", "l_level_cells", "empirical_cells",
     "cells_to_resolution",
@@ -35,5 +35,6 @@ __all__ = [
     # the memory effect
     "miss_fraction", "lines_beyond_cache",
     # effects and uncertainty
-    "EFFECT_TOLERANCE", "select_effects", "termination_fraction", "posterior_optimum", "posterior_ns",
+    "EFFECT_TOLERANCE", "select_effects", "termination_fraction", "rays_stop_on_entry",
+    "posterior_optimum", "posterior_ns",
 ]

@@ -10,7 +10,8 @@ optimum by more than ``EFFECT_TOLERANCE`` (relative).  The procedure:
 
 Effects: ``edge`` (E1 terms), ``area`` (E2 terms), ``mailbox`` (tests once per ray
 per triangle; only when the kernel mailboxes), ``termination`` (rays stop at the
-first hit; approximate analytic model, see :func:`termination_fraction`),
+first hit; where they stop sampled on the real mesh, or an approximate analytic model,
+see :func:`termination_fraction`),
 ``clustering`` (non-uniform density; see :func:`clustering_index`), ``subgrid``
 (T_sub per subgrid entered; nested grids only).
 """
@@ -49,10 +50,30 @@ class EffectSelection:
     effects: list
 
 
-def termination_fraction(stats: SceneStats) -> tuple[float, float]:
-    """Approximate fraction of the no-termination work a ray does when it stops at its first hit.
+def rays_stop_on_entry(stats: SceneStats) -> bool:
+    """The sampled rays (:attr:`SceneStats.termination`) stop where they enter the box.
 
-    APPROXIMATE model (flagged as such wherever it is reported):
+    True when the chord they cover before their first hits, summed, is less than one
+    ray's chord: the traversed fraction is below what the sample resolves (the room:
+    its walls are the box's faces).  The count model then has no finite optimum: a ray
+    enters one cell and tests its triangles, so its time falls with the cell size all
+    the way to the largest grid, and what bounds a real grid there (the memory a finer
+    grid takes, the triangles a ray's first cell holds however small it is) is not in
+    the counts.  :func:`termination_fraction` then counts without termination.
+    """
+    ts = stats.termination
+    return ts is not None and ts.fraction * ts.rays < 1.0
+
+
+def termination_fraction(stats: SceneStats) -> tuple[float, float]:
+    """Fraction of the no-termination work a ray does when it stops at its first hit.
+
+    SAMPLED when ``stats.termination`` holds a :class:`models.stats.TerminationSample`
+    (``calibrate.predict`` traces isotropic lines through the real mesh): its fraction and
+    hit probability, as measured; when they stop where they enter
+    (:func:`rays_stop_on_entry`), ``(1.0, p_hit)``: counted without termination.
+
+    Otherwise APPROXIMATE (flagged as such wherever it is reported):
     - hit probability ``p``: for a closed (watertight) surface of area A,
       ``p = min(1, A / S)`` -- exact for a convex surface (Crofton), an over-estimate
       otherwise (a line may cross a non-convex surface 4+ times); for an open mesh
@@ -63,12 +84,17 @@ def termination_fraction(stats: SceneStats) -> tuple[float, float]:
       the box = ``(4 V_in / A) / (4 V / S)`` (Cauchy's mean chord), clipped to [0, 1]
       (0 for open meshes).  Exact when the object is convex and centred.
     Work is assumed proportional to the distance traversed (steps and tests alike),
-    so the fraction is ``(1 - p) + p (1 - c) / 2``.
+    so the fraction is ``(1 - p) + p (1 - c) / 2``.  Measured against sampled rays
+    (docs/compare.md, "Where rays stop, sampled"), it is far off for a mesh that
+    encloses the box (Sponza: 0.50 against 0.02) and for open meshes generally.
 
     Returns
     -------
     (fraction, p_hit) : both in [0, 1]; fraction > 0.
     """
+    if stats.termination is not None:
+        ts = stats.termination
+        return (1.0 if rays_stop_on_entry(stats) else max(ts.fraction, 1e-6)), ts.p_hit
     a = stats.area
     s = stats.surface
     if stats.watertight:
@@ -148,10 +174,18 @@ def select_effects(stats: SceneStats, t_setup, t_step, t_int, *, mailbox=False, 
     else:
         effects.append(Effect("mailbox", False, 0.0,
                               f"mailboxing: kernel does not mailbox (it would change time by {_pct(ch)})"))
-    if termination:
+    if termination and rays_stop_on_entry(stats):
+        effects.append(Effect("termination", False, 0.0,
+                              f"termination (sampled, {stats.termination.rays} rays): {_pct(p_hit)} hit, every one "
+                              "where it enters the box; the counts then fall with the cell size to the largest "
+                              "grid (what bounds it, memory and the first cell's own triangles, is not in them), "
+                              "so they are taken without termination"))
+    elif termination:
         ch = change(replace(full, traversed_fraction=1.0))
+        how = ("approximate" if stats.termination is None
+               else f"sampled, {stats.termination.rays} rays")
         effects.append(Effect("termination", ch > tolerance, ch,
-                              f"termination (approximate): ~{_pct(p_hit)} of rays hit, covering "
+                              f"termination ({how}): ~{_pct(p_hit)} of rays hit, covering "
                               f"{_pct(frac)} of the no-hit distance (their first cell whole); ignoring it "
                               f"changes time by {_pct(ch)}"))
     else:

@@ -266,6 +266,28 @@ def _edges_twice(ids, f) -> bool:
 
 
 @dataclass(frozen=True)
+class TerminationSample:
+    """Where isotropic lines through the grid box stop on the real mesh (a Monte Carlo sample).
+
+    fraction : the box chord the rays cover before their first hit, summed over the rays,
+        over the chords summed (a ray that misses covers its whole chord), in [0, 1]:
+        the traversed fraction of :class:`models.general.Terms`.
+    p_hit : the fraction of the rays that hit.
+    rays : how many were traced.
+    """
+
+    fraction: float
+    p_hit: float
+    rays: int
+
+    def __post_init__(self):
+        if not (0.0 <= self.fraction <= 1.0 and 0.0 <= self.p_hit <= 1.0):
+            raise ValueError(f"fraction and p_hit must lie in [0, 1], got {self.fraction!r}, {self.p_hit!r}")
+        if not (isinstance(self.rays, int) and self.rays >= 1):
+            raise ValueError(f"rays must be a whole number >= 1, got {self.rays!r}")
+
+
+@dataclass(frozen=True)
 class SceneStats:
     """Scene statistics (scene units; counts are plain numbers).
 
@@ -290,6 +312,9 @@ class SceneStats:
     enclosed_volume : float, see :func:`enclosed_volume`; 0.0 unless watertight.
     positions : int, distinct vertex positions (:func:`mesh_topology`), or 0 when not
         computed; see :attr:`separate_fraction`.
+    termination : :class:`TerminationSample` or None, where rays traced through the
+        real mesh stop (measured by the caller, which can trace: ``calibrate.predict``);
+        None leaves :func:`models.effects.termination_fraction` to its approximation.
     """
 
     n_triangles: int
@@ -313,6 +338,7 @@ class SceneStats:
     watertight: bool
     enclosed_volume: float
     positions: int = 0
+    termination: TerminationSample | None = None
 
     @property
     def separate_fraction(self) -> float:

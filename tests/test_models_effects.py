@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 from test_models_general import chord_end, mesh_of, random_triangles, sample_lines
 
-from models.effects import EFFECT_TOLERANCE, clustering_index, select_effects, termination_fraction
-from models.stats import scene_stats, stats_from_geometry, triangle_geometry
+from models.effects import (EFFECT_TOLERANCE, clustering_index, rays_stop_on_entry, select_effects,
+                            termination_fraction)
+from models.stats import TerminationSample, scene_stats, stats_from_geometry, triangle_geometry
 
 T = dict(t_setup=20.0, t_step=2.0, t_int=8.0)
 
@@ -134,3 +135,43 @@ def test_termination_fraction_bounds():
     assert termination_fraction(open_plane) == (pytest.approx(0.5), 1.0)
     closed_box = replace(s, watertight=True, area=s.surface, enclosed_volume=s.volume)
     assert termination_fraction(closed_box)[0] == pytest.approx(1e-6)  # floor: rays stop at entry
+
+
+def test_a_sampled_termination_replaces_the_approximation():
+    s = _scene(7, 0.3)
+    sampled = replace(s, termination=TerminationSample(fraction=0.0371, p_hit=0.82, rays=4096))
+    assert termination_fraction(sampled) == (0.0371, 0.82)
+    assert termination_fraction(s) != termination_fraction(sampled)
+    sel = _by_name(select_effects(sampled, **T))
+    assert sel["termination"].used and "sampled, 4096 rays" in sel["termination"].reason
+    assert "3.7% of the no-hit distance" in sel["termination"].reason
+    assert "approximate" in _by_name(select_effects(s, **T))["termination"].reason
+    # a smaller traversed fraction makes the first cell's triangles weigh more: a finer optimum
+    farther = replace(s, termination=TerminationSample(fraction=0.5, p_hit=0.82, rays=4096))
+    assert np.prod(select_effects(sampled, **T).resolution) > np.prod(select_effects(farther, **T).resolution)
+
+
+def test_rays_that_stop_where_they_enter_are_counted_without_termination():
+    """Below one ray's chord in all (the room's walls are the box's faces) the count model would
+    refine to the largest grid; the counts are then those of rays that never stop, said so."""
+    s = _scene(8, 0.3)
+    one_ray = 1.0 / 4096
+    on_entry = replace(s, termination=TerminationSample(fraction=0.99 * one_ray, p_hit=1.0, rays=4096))
+    past = replace(s, termination=TerminationSample(fraction=1.01 * one_ray, p_hit=1.0, rays=4096))
+    assert rays_stop_on_entry(on_entry) and not rays_stop_on_entry(past) and not rays_stop_on_entry(s)
+    assert termination_fraction(on_entry) == (1.0, 1.0)
+    assert termination_fraction(past)[0] == pytest.approx(1.01 * one_ray)
+    sel = select_effects(on_entry, **T)
+    e = _by_name(sel)["termination"]
+    assert not e.used and "where it enters the box" in e.reason and sel.terms.traversed_fraction == 1.0
+    assert sel.resolution == select_effects(s, **T, termination=False).resolution
+    # without the rule: the optimum runs far finer on a fraction the sample cannot resolve
+    assert np.prod(select_effects(past, **T).resolution) > 8 * np.prod(sel.resolution)
+
+
+@pytest.mark.parametrize("bad", [dict(fraction=-0.1, p_hit=0.5, rays=10), dict(fraction=0.2, p_hit=1.5, rays=10),
+                                 dict(fraction=float("nan"), p_hit=0.5, rays=10),
+                                 dict(fraction=0.2, p_hit=0.5, rays=0), dict(fraction=0.2, p_hit=0.5, rays=2.5)])
+def test_a_termination_sample_rejects_bad_values(bad):
+    with pytest.raises(ValueError):
+        TerminationSample(**bad)

@@ -17,9 +17,10 @@ from calibrate._grid import Grid, Scene
 from calibrate._io import UserError
 from calibrate.cli import _Parser
 from calibrate.predict import (DEFAULT_CALIBRATION, EXTRAPOLATION_FACTOR, SIM_RAYS, SIM_SEED, add_parser,
-                               cmd_predict, fit_count_curves, predict, resolve_constants)
+                               TERMINATION_RAYS, TERMINATION_SEED, cmd_predict, fit_count_curves, predict,
+                               resolve_constants, sample_termination, scene_statistics)
 from models.closed_forms import cells_to_resolution, lines_cells, points_cells, two_level_points
-from models.effects import select_effects
+from models.effects import rays_stop_on_entry, select_effects
 from models.general import predict_uniform
 
 #: Planted constants (ns) of the synthetic calibration, and its posterior's relative spread.
@@ -121,7 +122,7 @@ def test_synthetic_calibration_flows_through(cal_path, capsys):
     assert p["ns_per_ray"]["ci95"] == pytest.approx(list(np.percentile(t, [2.5, 97.5])), rel=1e-12)
     # the resolution is the models' optimum for the calibration's median constants
     med = {n: float(np.median(samples[n])) for n in PLANTED_NS}
-    sel = select_effects(Scene.builtin("cylinder1996").stats, med["t_setup_ns"], med["t_step_ns"], med["t_int_ns"])
+    sel = select_effects(scene_statistics(Scene.builtin("cylinder1996")), med["t_setup_ns"], med["t_step_ns"], med["t_int_ns"])
     assert tuple(out["levels"][0]["resolution"]) == tuple(sel.resolution)
     assert out["constants"]["ratio"] == pytest.approx(med["t_int_ns"] / med["t_step_ns"])
     assert len(p["resolution_ci95"]) == 2
@@ -251,15 +252,16 @@ def test_analytic_single_level_is_the_models_prediction():
     scene = Scene.builtin("room")
     k = resolve_constants(constants=PLANTED_NS)
     out = predict(scene, constants=PLANTED_NS, fidelity="analytic", levels="1")
-    sel = select_effects(scene.stats, k.t_setup, k.t_step, k.t_int, termination=True)
+    stats = scene_statistics(scene)  # where rays stop sampled on the mesh
+    sel = select_effects(stats, k.t_setup, k.t_step, k.t_int, termination=True)
     assert tuple(out["levels"][0]["resolution"]) == tuple(sel.resolution)
-    t, steps, tests = predict_uniform(scene.stats, sel.resolution, k.t_setup, k.t_step, k.t_int, terms=sel.terms)
+    t, steps, tests = predict_uniform(stats, sel.resolution, k.t_setup, k.t_step, k.t_int, terms=sel.terms)
     assert out["predicted"]["ns_per_ray"]["median"] == pytest.approx(t, rel=1e-12)
     assert out["predicted"]["steps_per_ray"] == pytest.approx(steps, rel=1e-12)
     assert out["predicted"]["model_cost_per_ray"] == pytest.approx(t, rel=1e-12)
     pbrt = out["baselines_detail"]["pbrt-v2"]
     assert pbrt["cost_per_ray"] == pytest.approx(
-        predict_uniform(scene.stats, pbrt["levels"][0], k.t_setup, k.t_step, k.t_int, terms=sel.terms)[0], rel=1e-12)
+        predict_uniform(stats, pbrt["levels"][0], k.t_setup, k.t_step, k.t_int, terms=sel.terms)[0], rel=1e-12)
     assert {e["name"] for e in out["effects"]} >= {"edge", "area", "mailbox", "termination", "clustering", "subgrid"}
     assert [e["used"] for e in out["effects"] if e["name"] == "mailbox"] == [False]
 
@@ -306,9 +308,56 @@ def test_camera_rays_with_the_analytic_model_say_so():
 def test_scene_statistics_are_cached_per_scene_object():
     scene = Scene.builtin("scattered-compact")
     first = predict(scene, ratio=RATIO, fidelity="analytic", levels="1")
-    stats = scene.stats
+    stats, sampled = scene.stats, scene_statistics(scene)
     second = predict(scene, ratio=RATIO, fidelity="analytic", levels="1")
-    assert scene.stats is stats and first["levels"] == second["levels"]
+    assert scene.stats is stats and scene_statistics(scene) is sampled and first["levels"] == second["levels"]
+    assert sampled.termination is not None and stats.termination is None
+
+
+
+def test_sampled_termination_recovers_a_centred_sphere():
+    """Where rays stop, measured: the hit probability is Crofton's A / S for a convex surface, and
+    the traversed fraction is the exact sphere's on the same lines (the mesh is inscribed in it)."""
+    trimesh = pytest.importorskip("trimesh")
+    m = trimesh.creation.icosphere(subdivisions=5, radius=0.3)
+    v = np.asarray(m.vertices) + 1.0  # centred in [0, 2]^3, which two specks at the corners span
+    f = np.asarray(m.faces, dtype=np.int64)
+    specks = np.array([[0, 0, 0], [1e-7, 0, 0], [0, 1e-7, 0], [2, 2, 2], [2 - 1e-7, 2, 2], [2, 2 - 1e-7, 2]])
+    n = len(v)
+    scene = Scene(np.vstack([v, specks]), np.vstack([f, [[n, n + 1, n + 2], [n + 3, n + 4, n + 5]]]), name="ball")
+    assert np.allclose(scene.box_lo, 0.0) and np.allclose(scene.box_hi, 2.0)
+    ts = sample_termination(scene)
+    assert ts.rays == TERMINATION_RAYS
+    o, d = rays.isotropic(scene.box_lo, scene.box_hi, TERMINATION_RAYS, TERMINATION_SEED)
+    t_in, t_out = rays.box_chords(o, d, scene.box_lo, scene.box_hi)
+    oc = o - 1.0
+    b = np.einsum("ij,ij->i", oc, d)
+    disc = b * b - (np.einsum("ij,ij->i", oc, oc) - 0.09)
+    hit = disc > 0
+    t_hit = np.where(hit, -b - np.sqrt(np.maximum(disc, 0.0)), t_out)
+    exact = float(np.sum(t_hit - t_in) / np.sum(t_out - t_in))
+    assert ts.fraction == pytest.approx(exact, abs=0.003)
+    assert ts.p_hit == pytest.approx(hit.mean(), abs=0.003)  # rays grazing the facets may differ
+    crofton = 4.0 * math.pi * 0.09 / 24.0
+    assert abs(ts.p_hit - crofton) < 4.0 * math.sqrt(crofton * (1 - crofton) / TERMINATION_RAYS)
+    # the analytic fidelity's counts scale by it
+    out = predict(scene, ratio=RATIO, fidelity="analytic", levels="1")
+    why = [e["reason"] for e in out["effects"] if e["name"] == "termination"][0]
+    assert f"sampled, {TERMINATION_RAYS} rays" in why and f"{100 * ts.fraction:.1f}% of the no-hit distance" in why
+
+
+def test_rays_stopping_where_they_enter_the_room_are_counted_without_termination():
+    """The room's walls are its box's faces: every sampled ray stops where it enters, and the plan
+    is the one of rays that never stop (the count model alone would refine without bound)."""
+    scene = Scene.builtin("room")
+    st = scene_statistics(scene)
+    assert rays_stop_on_entry(st) and st.termination.p_hit == 1.0 and st.termination.fraction < 1e-9
+    k = resolve_constants(constants=PLANTED_NS)
+    out = predict(scene, constants=PLANTED_NS, fidelity="analytic", levels="1")
+    never = select_effects(scene.stats, k.t_setup, k.t_step, k.t_int, termination=False)
+    assert tuple(out["levels"][0]["resolution"]) == tuple(never.resolution)
+    why = [e for e in out["effects"] if e["name"] == "termination"][0]
+    assert not why["used"] and "where it enters the box" in why["reason"]
 
 
 @pytest.mark.parametrize("i, res", list(enumerate([(8, 9, 10), (40, 40, 40)])))
