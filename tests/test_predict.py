@@ -346,6 +346,18 @@ def test_sampled_termination_recovers_a_centred_sphere():
     assert f"sampled, {TERMINATION_RAYS} rays" in why and f"{100 * ts.fraction:.1f}% of the no-hit distance" in why
 
 
+def test_a_large_mesh_keeps_the_approximate_fraction(monkeypatch):
+    """Above TERMINATION_SAMPLE_MAX_TRIANGLES the sample's grid would cost more than the analytic
+    prediction's time goal: the statistics are the scene's own, the reason says approximate."""
+    import calibrate.predict as P
+
+    scene = Scene.builtin("cylinder1996")
+    monkeypatch.setattr(P, "TERMINATION_SAMPLE_MAX_TRIANGLES", scene.n_triangles - 1)
+    assert scene_statistics(scene) is scene.stats and scene.stats.termination is None
+    out = predict(scene, ratio=RATIO, fidelity="analytic", levels="1")
+    assert "termination (approximate)" in [e["reason"] for e in out["effects"] if e["name"] == "termination"][0]
+
+
 def test_rays_stopping_where_they_enter_the_room_are_counted_without_termination():
     """The room's walls are its box's faces: every sampled ray stops where it enters, and the plan
     is the one of rays that never stop (the count model alone would refine without bound)."""
