@@ -70,7 +70,7 @@ def recommended_grid(scene: Scene, *, constants=None, samples=None, ratio=None, 
 
     k = _p.resolve_constants(constants, samples, ratio)
     levels = _p._check_choice("levels", levels, _p.LEVEL_CHOICES)
-    stats = scene.stats
+    stats = _p.scene_statistics(scene)
     plan, _ = _p._analytic_plan(scene, stats, k, levels, mailbox)
     if len(plan["levels"]) == 1:
         res = tuple(plan["levels"][0]["resolution"])

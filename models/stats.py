@@ -283,7 +283,7 @@ class TerminationSample:
     def __post_init__(self):
         if not (0.0 <= self.fraction <= 1.0 and 0.0 <= self.p_hit <= 1.0):
             raise ValueError(f"fraction and p_hit must lie in [0, 1], got {self.fraction!r}, {self.p_hit!r}")
-        if not (isinstance(self.rays, int) and self.rays >= 1):
+        if isinstance(self.rays, bool) or not (isinstance(self.rays, int) and self.rays >= 1):
             raise ValueError(f"rays must be a whole number >= 1, got {self.rays!r}")
 
 

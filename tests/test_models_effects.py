@@ -171,7 +171,8 @@ def test_rays_that_stop_where_they_enter_are_counted_without_termination():
 
 @pytest.mark.parametrize("bad", [dict(fraction=-0.1, p_hit=0.5, rays=10), dict(fraction=0.2, p_hit=1.5, rays=10),
                                  dict(fraction=float("nan"), p_hit=0.5, rays=10),
-                                 dict(fraction=0.2, p_hit=0.5, rays=0), dict(fraction=0.2, p_hit=0.5, rays=2.5)])
+                                 dict(fraction=0.2, p_hit=0.5, rays=0), dict(fraction=0.2, p_hit=0.5, rays=2.5),
+                                 dict(fraction=0.2, p_hit=0.5, rays=True)])
 def test_a_termination_sample_rejects_bad_values(bad):
     with pytest.raises(ValueError):
         TerminationSample(**bad)
