@@ -61,6 +61,14 @@ NESTED_BASELINES = {"manta-L2-top": (8.0, None), "kalojanov-2level": (1.2, (1.0,
 #: values, and the predicted point and the curve's minimum are the two the penalty compares.
 REFINE_ROUNDS = 16
 REFINE_BUILDS = 2
+#: The refinement's values are put on the sweep's scale before they join it: divided by its
+#: level, the median over the grids timed again of (their median in the refinement / their
+#: median in the sweep), when at least this many grids were timed again (else 1).  Timed
+#: apart from the other grids, a few minutes later, the same grids ran at a common level
+#: 0.66-0.78 (armadillo), 0.83-0.98 (sphere) and 1.08-1.35 (cylinder1996) times the
+#: sweep's (2026-12-03, evening): joined as timed, the refined points sat off the curve
+#: of the others and the measured best moved to whichever kind the level favoured.
+REFINE_LEVEL_MIN_GRIDS = 3
 #: Bootstrap replicates of a penalty's 95% interval, and their seed.  Each replicate draws
 #: every measured grid's values again with replacement (independently: values of one grid
 #: are taken as exchangeable), takes their median, finds each curve's minimum as the
@@ -185,6 +193,7 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
                                 required=(index[chosen],), clock=clock)
     except ValueError as exc:
         raise UserError(f"{scene.name}: the predicted grid cannot be measured ({exc})") from None
+    level = None
     if refine_rounds:
         deciding = _deciding_grids(factors, curve_specs, index, measured, chosen)
         say(f"{scene.name}: timing the {len(deciding)} grids that decide the penalty again")
@@ -192,8 +201,9 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
                              builds=min(REFINE_BUILDS, int(refine_rounds)), min_time=min_time, seed=seed + 1,
                              prime=prime, progress=progress, status=lambda text: say(f"{scene.name}: {text}"),
                              clock=clock)
+        level = refine_level([measured[i] for i in deciding], again)
         for i, extra in zip(deciding, again):
-            _join_values(measured[i], extra)
+            _join_values(measured[i], extra, level)
     stats = _predict.scene_statistics(scene)
     terms = _predict.analytic_uniform_plan(stats, k, False)[0]["terms"]
     notes = list(k.notes)
@@ -283,7 +293,8 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
         predicted_time_ns=mc["median_ns"], predicted_mad_ns=mc["mad_ns"], predicted_cells=mc["cells"],
         best_measured_resolution=best_curve["fit"]["resolution"], best_measured_levels=best_curve["levels"],
         best_measured_time_ns=t_best, best_measured_factor=best_curve["fit"]["factor"],
-        baselines=out_base, curves=curves, points=all_points, t_step_scale_ns=t_step_ns, notes=notes))
+        baselines=out_base, curves=curves, points=all_points, t_step_scale_ns=t_step_ns, refine_level=level,
+        notes=notes))
 
 
 def _deciding_grids(factors, curve_specs: dict, index: dict, measured: list, chosen) -> list[int]:
@@ -301,11 +312,21 @@ def _deciding_grids(factors, curve_specs: dict, index: dict, measured: list, cho
     return sorted(i for i in out if measured[i].get("median_ns") is not None)
 
 
-def _join_values(row: dict, extra: dict) -> None:
-    """Add a second timing's values of one grid to its sweep row (median, MAD, builds again)."""
+def refine_level(rows: list, extras: list) -> float:
+    """The refinement's common level against the sweep's (REFINE_LEVEL_MIN_GRIDS): the median
+    over grids measured in both of ``extra median / row median``, or 1.0 with fewer grids."""
+    ratios = [e["median_ns"] / r["median_ns"] for r, e in zip(rows, extras)
+              if r.get("median_ns") and e.get("median_ns")]
+    return float(np.median(ratios)) if len(ratios) >= REFINE_LEVEL_MIN_GRIDS else 1.0
+
+
+def _join_values(row: dict, extra: dict, level: float = 1.0) -> None:
+    """Add a second timing's values of one grid to its sweep row, divided by ``level`` (the
+    second timing's common level, :func:`refine_level`); median, MAD and builds again.  The
+    values as timed join ``raw_values_ns``."""
     if extra.get("median_ns") is None:
         return
-    row["values_ns"] = list(row["values_ns"]) + list(extra["values_ns"])
+    row["values_ns"] = list(row["values_ns"]) + [v / level for v in extra["values_ns"]]
     if "raw_values_ns" in row and "raw_values_ns" in extra:
         row["raw_values_ns"] = list(row["raw_values_ns"]) + list(extra["raw_values_ns"])
     else:

@@ -182,3 +182,38 @@ def test_no_refinement_keeps_every_grid_at_its_rounds():
     r = compare_scene("cylinder196", ratio=RATIO, levels="1", points=5, ray_count=256, rounds=2, min_time=0.002,
                       refine_rounds=0)
     assert {p["values"] for p in r["points"]} == {2}
+
+
+def test_the_refinements_level_is_divided_out_before_its_values_join():
+    """A refinement timed at a planted common level (1.3 times the sweep's, each grid's own
+    noise beside it) joins on the sweep's scale: the level is recovered, the joined medians
+    stay the grids' own, and the raw values keep what was timed."""
+    from calibrate.compare import REFINE_LEVEL_MIN_GRIDS, _join_values, refine_level
+
+    rng = np.random.default_rng(7)
+    truth = [100.0, 120.0, 90.0, 150.0, 110.0]
+    rows, extras = [], []
+    for t in truth:
+        v = list(t * np.exp(0.01 * rng.standard_normal(8)))
+        w = list(1.3 * t * np.exp(0.01 * rng.standard_normal(16)))
+        rows.append(dict(values_ns=v, raw_values_ns=list(v), median_ns=float(np.median(v)), builds=4))
+        extras.append(dict(values_ns=w, raw_values_ns=list(w), median_ns=float(np.median(w)), builds=2))
+    level = refine_level(rows, extras)
+    assert level == pytest.approx(1.3, rel=0.01)
+    for row, extra, t in zip(rows, extras, truth):
+        _join_values(row, extra, level)
+        assert len(row["values_ns"]) == 24 and row["builds"] == 6
+        assert row["median_ns"] == pytest.approx(t, rel=0.02)  # joined as timed: about 1.3 t
+        assert np.median(row["raw_values_ns"]) > 1.2 * t
+    # too few grids timed again: no level is estimated
+    assert refine_level(rows[:REFINE_LEVEL_MIN_GRIDS - 1], extras[:REFINE_LEVEL_MIN_GRIDS - 1]) == 1.0
+    assert refine_level(rows, [dict(median_ns=None)] * len(rows)) == 1.0
+
+
+def test_a_refined_run_reports_its_level(short_run):
+    _, doc, _ = short_run
+    (r,) = doc["scenes"]
+    assert r["refine_level"] is not None and 0.2 < r["refine_level"] < 5.0
+    r0 = compare_scene("cylinder196", ratio=RATIO, levels="1", points=3, ray_count=128, rounds=1, min_time=1e-3,
+                       refine_rounds=0)
+    assert r0["refine_level"] is None
