@@ -5,7 +5,8 @@ then measures real traversal time (:mod:`calibrate.sweep`) over a log-spaced swe
 resolutions from 1/4 to 4 times the predicted optimum per axis, for each depth it
 compares, together with the predicted grid and every baseline heuristic's grid, all in
 one interleaved measurement; then the grids that decide the penalties (the predicted one and
-those around each curve's minimum) are timed again (REFINE_ROUNDS).  It reports
+those around each curve's minimum) are timed again (REFINE_ROUNDS), their values put on
+the sweep's scale (:func:`refine_level`) before they join it.  It reports
 
 - the measured optimum: the vertex of a smooth fit through the points near each
   curve's lowest one (:func:`calibrate.sweep.fit_minimum`), the lowest over depths;
