@@ -16,7 +16,9 @@ Fidelities (DESIGN §3.3):
 ``analytic``
     The general integral-geometry model (:mod:`models.general`) with the effects
     :func:`models.effects.select_effects` keeps; nested grids by Crofton composition
-    (:mod:`models.nested`).  One pass over the mesh (cached per scene object).
+    (:mod:`models.nested`).  One pass over the mesh, and where rays stop on it measured
+    with TERMINATION_RAYS lines up to TERMINATION_SAMPLE_MAX_TRIANGLES triangles
+    (:func:`sample_termination`); both cached per scene object.
 ``simulated``
     The instrumented kernel (:meth:`calibrate._grid.Grid.count`) traverses a sample of
     rays through the real scene at a few resolutions around the analytic optimum; the
