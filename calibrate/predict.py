@@ -146,8 +146,14 @@ TERMINATION_RAYS = 4096
 #: Their seed (a prediction is deterministic).
 TERMINATION_SEED = 0
 #: Cells per triangle of the grid they are traced through (the first hits do not depend
-#: on it; a coarse grid keeps the build small next to the mesh).
+#: on it; a coarse grid keeps the build small next to the mesh) ...
 TERMINATION_CELLS_PER_TRIANGLE = 0.25
+#: ... halved while the grid's expected references (models.general.expected_refs) exceed
+#: this many: long triangles cross many cells (cylinder19996 at a quarter cell per
+#: triangle: 1.0 M references, 76 MB, 116 ms; a 200,000-triangle cylinder would take 22 M),
+#: so the sample's memory stays below about 160 MB.  Fewer cells make the trace dearer
+#: instead (cylinder19996 in 5 cells: 112 ms, nearly all of it tracing).
+TERMINATION_MAX_REFS = 2 ** 21
 #: Above this many triangles the fraction is the approximation, not sampled: the grid the
 #: lines are traced through costs about 0.1 ms per 1,000 triangles to build whatever its
 #: resolution or insertion (31 ms at 10^5, 121 ms at 10^6 here; the trace 3-12 ms), against
@@ -395,6 +401,19 @@ def scene_statistics(scene: Scene):
     return cached
 
 
+def termination_grid_resolution(scene: Scene) -> tuple[int, int, int]:
+    """The grid :func:`sample_termination` traces through: TERMINATION_CELLS_PER_TRIANGLE cells
+    per triangle, halved while the expected references exceed TERMINATION_MAX_REFS (down to
+    one cell)."""
+    extent = scene.box_hi - scene.box_lo
+    cells = max(1.0, TERMINATION_CELLS_PER_TRIANGLE * scene.n_triangles)
+    res = resolution_for_cells(cells, extent)
+    while cells > 1.0 and expected_refs(scene.stats, res) > TERMINATION_MAX_REFS:
+        cells = max(1.0, cells / 2.0)
+        res = resolution_for_cells(cells, extent)
+    return res
+
+
 def sample_termination(scene: Scene, rays: int = TERMINATION_RAYS, seed: int = TERMINATION_SEED):
     """Where isotropic lines through the grid box stop on the mesh: a :class:`models.stats.TerminationSample`.
 
@@ -409,9 +428,7 @@ def sample_termination(scene: Scene, rays: int = TERMINATION_RAYS, seed: int = T
     lo, hi = scene.box_lo, scene.box_hi
     o, d = _rays_mod.isotropic(lo, hi, int(rays), seed)
     t_in, t_out = _rays_mod.box_chords(o, d, lo, hi)
-    grid = Grid.uniform(scene, resolution_for_cells(max(1.0, TERMINATION_CELLS_PER_TRIANGLE * scene.n_triangles),
-                                                    hi - lo))
-    t_hit, _ = grid.intersect(o, d)
+    t_hit, _ = Grid.uniform(scene, termination_grid_resolution(scene)).intersect(o, d)
     chord = np.maximum(t_out - t_in, 0.0)
     covered = np.clip(np.minimum(t_hit, t_out) - t_in, 0.0, chord)
     total = float(chord.sum())

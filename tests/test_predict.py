@@ -427,3 +427,23 @@ def test_the_search_tries_thin_axes_one_and_two_deep():
     assert _scaled_with_thin_axes((40, 40, 40), 0.5) == [(20, 20, 20)]  # no thin axis
     assert set(_scaled_with_thin_axes((3, 3, 50), 0.7)) == {(2, 2, 35), (2, 3, 35), (3, 2, 35), (3, 3, 35)}
     assert _scaled_with_thin_axes((1, 1, 1), 0.25) == [(1, 1, 1)]  # never below one cell
+
+
+def test_the_samples_grid_bounds_its_references(monkeypatch):
+    """Long triangles cross many cells: the sample's grid is coarsened until its expected
+    references fit TERMINATION_MAX_REFS, and the fraction it measures does not change."""
+    import calibrate.predict as P
+    from models.general import expected_refs
+
+    scene = Scene.builtin("cylinder1996")
+    full = P.termination_grid_resolution(scene)
+    assert full == P.resolution_for_cells(P.TERMINATION_CELLS_PER_TRIANGLE * scene.n_triangles,
+                                          scene.box_hi - scene.box_lo)
+    refs = expected_refs(scene.stats, full)
+    monkeypatch.setattr(P, "TERMINATION_MAX_REFS", refs / 3.0)
+    small = P.termination_grid_resolution(scene)
+    assert np.prod(small) < np.prod(full) and expected_refs(scene.stats, small) <= refs / 3.0
+    # first hits do not depend on the grid
+    coarse = P.sample_termination(scene)
+    monkeypatch.undo()
+    assert coarse == P.sample_termination(scene)
