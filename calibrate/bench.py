@@ -385,8 +385,9 @@ def bench_scene(scene, *, constants=None, samples=None, ratio=None, batch: int =
         g, plan = recommended_grid(scene, levels=levels, mailbox=mailbox, **src)
         grids[name] = g
         gi = g.info
-        info[name] = dict(plan, references=int(gi["n_refs"]), memory_bytes=int(gi["memory_bytes"]),
-                          cells=int(gi["n_cells"]))
+        info[name] = dict(levels=plan["levels"], resolution=plan["resolution"], predict_s=plan["predict_s"],
+                          build_s=plan["build_s"], references=int(gi["n_refs"]),
+                          memory_bytes=int(gi["memory_bytes"]), cells=int(gi["n_cells"]))
     skipped = {}
     tracers = {}
     reason = embree_unavailable()

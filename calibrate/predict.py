@@ -1088,9 +1088,9 @@ def recommended_grid(scene, *, constants=None, samples=None, ratio=None, levels=
     follow the kernel's rule.
 
     Returns ``(grid, plan)``: a :class:`calibrate._grid.Grid` and a dict with ``levels``
-    (the number of levels), ``resolution`` (top [nx, ny, nz]), ``predict_s`` (seconds to
-    plan, scene statistics included unless already cached) and ``build_s`` (seconds to
-    build).
+    (the number of levels), ``resolution`` (top [nx, ny, nz]), ``level_plans`` (the plan's
+    dict per level, as :func:`predict` reports them), ``predict_s`` (seconds to plan, scene
+    statistics included unless already cached) and ``build_s`` (seconds to build).
     """
     levels = _check_choice("levels", levels, LEVEL_CHOICES)
     if not isinstance(mailbox, (bool, np.bool_)):
@@ -1114,7 +1114,8 @@ def recommended_grid(scene, *, constants=None, samples=None, ratio=None, levels=
     else:
         grid = Grid.uniform(scene, top, mailbox=bool(mailbox))
     t2 = time.perf_counter()
-    return grid, dict(levels=n_levels, resolution=top, predict_s=t1 - t0, build_s=t2 - t1)
+    return grid, dict(levels=n_levels, resolution=top, level_plans=plan["levels"], predict_s=t1 - t0,
+                      build_s=t2 - t1)
 
 
 def json_ready(x):

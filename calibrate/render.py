@@ -60,26 +60,14 @@ def _check_size(value, what: str) -> int:
 
 
 def recommended_grid(scene: Scene, *, constants=None, samples=None, ratio=None, levels="1", mailbox=False):
-    """The grid ``calibrate predict`` recommends (analytic fidelity), built in the kernel.
-
-    levels : "auto" | "1" | "2" | "3".  A nested plan is built with the plan's top
-    resolution and its depth-1 subgrid resolutions (deeper levels by the kernel's rule),
-    as the simulated fidelity builds it.  Returns (grid, description of the levels).
-    """
+    """The grid ``calibrate predict`` recommends (analytic fidelity), built in the kernel:
+    :func:`calibrate.predict.recommended_grid`.  levels : "auto" | "1" | "2" | "3".
+    Returns (grid, description of the levels)."""
     from . import predict as _p
 
-    k = _p.resolve_constants(constants, samples, ratio)
-    levels = _p._check_choice("levels", levels, _p.LEVEL_CHOICES)
-    stats = _p.scene_statistics(scene)
-    plan, _ = _p._analytic_plan(scene, stats, k, levels, mailbox)
-    if len(plan["levels"]) == 1:
-        res = tuple(plan["levels"][0]["resolution"])
-        return Grid.uniform(scene, res, mailbox=mailbox), plan["levels"]
-    counts = plan["counts"]
-    sub = _p._kernel_subgrid_resolutions(scene, stats, counts, plan["overlap"])
-    grid = Grid.nested(scene, levels=counts.levels, resolution=counts.top_resolution, subgrid_resolutions=sub,
-                       mailbox=mailbox)
-    return grid, plan["levels"]
+    grid, plan = _p.recommended_grid(scene, constants=constants, samples=samples, ratio=ratio, levels=levels,
+                                     mailbox=mailbox)
+    return grid, plan["level_plans"]
 
 
 def camera_rays(scene: Scene, width: int, height: int, view=None):
