@@ -204,9 +204,10 @@ def _normalise(d: np.ndarray) -> np.ndarray:
 def box_chords(origins, directions, lo, hi) -> tuple[np.ndarray, np.ndarray]:
     """Where lines enter and leave the box [lo, hi]: ``(t_in, t_out)``, each (n,).
 
-    The slab test per axis; a direction component of zero leaves that axis's slab
-    out (its quotients are infinite or NaN, which ``fmin``/``fmax`` pass over).  A line
-    that misses the box has ``t_in > t_out``.
+    The slab test per axis; a direction component of zero leaves that axis's slab out
+    when the origin lies strictly inside it (its quotients are -inf and +inf), and makes
+    the line miss when the origin lies on one of its planes (``fmin``/``fmax`` take the
+    infinite quotient over the NaN one).  A line that misses the box has ``t_in > t_out``.
     """
     o = np.asarray(origins, dtype=np.float64)
     d = np.asarray(directions, dtype=np.float64)

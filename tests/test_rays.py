@@ -26,15 +26,6 @@ def box_volume_area(lo, hi):
     return float(np.prod(d)), float(2.0 * (d[0] * d[1] + d[1] * d[2] + d[0] * d[2]))
 
 
-def slab(origins, directions, lo, hi):
-    """Entry and exit parameters (n,) of lines against box [lo, hi] (t_enter > t_exit: miss)."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / directions
-        t0 = (np.asarray(lo, float) - origins) * inv
-        t1 = (np.asarray(hi, float) - origins) * inv
-    return np.fmin(t0, t1).max(axis=1), np.fmax(t0, t1).min(axis=1)
-
-
 def mean_and_se(x):
     x = np.asarray(x, dtype=np.float64)
     return x.mean(), x.std(ddof=1) / np.sqrt(x.size)
@@ -73,7 +64,7 @@ def test_isotropic_unit_finite_outside_deterministic(i):
     outside = np.any((o < np.asarray(lo)) | (o > np.asarray(hi)), axis=1)
     assert np.all(outside)
     # every line hits the box, entering exactly `margin` along the ray
-    t_in, t_out = slab(o, d, lo, hi)
+    t_in, t_out = rays.box_chords(o, d, lo, hi)
     assert np.all(t_in < t_out)
     margin = rays.ISOTROPIC_MARGIN_FRACTION_OF_DIAGONAL * np.linalg.norm(np.subtract(hi, lo))
     assert np.allclose(t_in, margin, rtol=1e-9, atol=1e-12 * np.abs(o).max())
@@ -102,7 +93,7 @@ def test_isotropic_flat_box():
 def test_isotropic_mean_chord_is_4V_over_S(i):
     lo, hi = BOXES[i]
     o, d = rays.isotropic(lo, hi, 200_000, 1000 + i)
-    t_in, t_out = slab(o, d, lo, hi)
+    t_in, t_out = rays.box_chords(o, d, lo, hi)
     mean, se = mean_and_se(t_out - t_in)
     vol, area = box_volume_area(lo, hi)
     exact = 4.0 * vol / area
@@ -115,7 +106,7 @@ def test_negative_control_uniform_directions_fail_chord_check(i):
     """The chord check has power: a sampler with uniform directions fails it on every box."""
     lo, hi = BOXES[i]
     o, d = uniform_hemisphere_lines(lo, hi, 200_000, np.random.default_rng(1000 + i))
-    t_in, t_out = slab(o, d, lo, hi)
+    t_in, t_out = rays.box_chords(o, d, lo, hi)
     mean, se = mean_and_se(t_out - t_in)
     vol, area = box_volume_area(lo, hi)
     assert abs(mean - 4.0 * vol / area) > Z_TOLERANCE * se
@@ -147,7 +138,7 @@ def test_isotropic_hit_fraction_of_inner_box_is_area_ratio(i):
     k_lo = lo_a + np.minimum(a, b) * (hi_a - lo_a)
     k_hi = lo_a + np.maximum(a, b) * (hi_a - lo_a)
     o, d = rays.isotropic(lo, hi, 200_000, 1000 + i)
-    t_in, t_out = slab(o, d, k_lo, k_hi)
+    t_in, t_out = rays.box_chords(o, d, k_lo, k_hi)
     hit = t_in < t_out
     p = box_volume_area(k_lo, k_hi)[1] / box_volume_area(lo, hi)[1]
     se = np.sqrt(p * (1 - p) / hit.size)
@@ -164,7 +155,7 @@ def cells_visited(o, d, lo, counts, h):
     cell_lo = np.asarray(lo, float) + h * np.stack([ix, iy, iz], axis=-1).reshape(-1, 3)
     total = np.zeros(o.shape[0], dtype=np.int64)
     for c_lo in cell_lo:
-        t_in, t_out = slab(o, d, c_lo, c_lo + h)
+        t_in, t_out = rays.box_chords(o, d, c_lo, c_lo + h)
         total += t_in < t_out
     return total
 
@@ -292,7 +283,7 @@ def test_camera_rays_count_jitter_determinism(i, n):
         assert abs(mean) < Z_TOLERANCE * se
         assert abs(x.var() - 1.0 / 3.0) < 0.02
         # the image frames the box: a good share of rays hit it, not all
-        t_in, t_out = slab(o, d, lo, hi)
+        t_in, t_out = rays.box_chords(o, d, lo, hi)
         hit = (t_in < t_out) & (t_out > 0)
         assert 0.05 < hit.mean() < 1.0
 
