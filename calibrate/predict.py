@@ -1011,7 +1011,8 @@ def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analyt
     k = resolve_constants(constants, samples, ratio)
     if not isinstance(scene, Scene):
         scene = Scene.load(scene)
-    stats = scene_statistics(scene)
+    # the paper fidelity is the talk's model, without termination: where rays stop is not sampled for it
+    stats = scene.stats if fidelity == "paper" else scene_statistics(scene)
     cls, cls_reason = scene_class(stats)
     notes = list(k.notes)
     if fidelity == "paper":
@@ -1099,12 +1100,13 @@ def recommended_grid(scene, *, constants=None, samples=None, ratio=None, levels=
     if not isinstance(scene, Scene):
         scene = Scene.load(scene)
     t0 = time.perf_counter()
-    plan, _ = _analytic_plan(scene, scene_statistics(scene), k, levels, bool(mailbox))
+    stats = scene_statistics(scene)
+    plan, _ = _analytic_plan(scene, stats, k, levels, bool(mailbox))
     n_levels = len(plan["levels"])
     sub = None
     if n_levels > 1:
         counts = plan["counts"]
-        sub = _kernel_subgrid_resolutions(scene, scene.stats, counts, plan["overlap"])
+        sub = _kernel_subgrid_resolutions(scene, stats, counts, plan["overlap"])
         top = _res_list(counts.top_resolution)
     else:
         top = _res_list(plan["levels"][0]["resolution"])
