@@ -34,19 +34,13 @@ GC_INLINE int gc_ray_box_clip(const gc_ray *r, const double lo[3], const double 
         }
         double tn = (lo[i] - r->o[i]) * r->inv_d[i];
         double tf = (hi[i] - r->o[i]) * r->inv_d[i];
-        if (tn > tf) {
-            double tmp = tn;
-            tn = tf;
-            tf = tmp;
-        }
-        tn -= GC_SLAB_WIDEN * fabs(tn);
-        tf += GC_SLAB_WIDEN * fabs(tf);
-        if (tn > ta) {
-            ta = tn;
-        }
-        if (tf < tb) {
-            tb = tf;
-        }
+        /* minima and maxima, not branches: which slab plane comes first is a
+         * coin toss for the branch predictor when rays go every way */
+        const double t_lo = tn > tf ? tf : tn, t_hi = tn > tf ? tn : tf;
+        const double wn = t_lo - GC_SLAB_WIDEN * fabs(t_lo);
+        const double wf = t_hi + GC_SLAB_WIDEN * fabs(t_hi);
+        ta = wn > ta ? wn : ta;
+        tb = wf < tb ? wf : tb;
     }
     if (!(ta <= tb)) {
         return 0;

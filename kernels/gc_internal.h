@@ -133,14 +133,15 @@ GC_INLINE void gc_ray_prepare(gc_ray *r, const double *o, const double *d)
         r->inv_d[i] = 1.0 / r->d[i];
     }
     double ax = fabs(r->d[0]), ay = fabs(r->d[1]), az = fabs(r->d[2]);
-    int kz = (ax > ay) ? ((ax > az) ? 0 : 2) : ((ay > az) ? 1 : 2);
-    int kx = kz + 1 == 3 ? 0 : kz + 1;
-    int ky = kx + 1 == 3 ? 0 : kx + 1;
-    if (r->d[kz] < 0.0) { /* keep the winding so the sign tests stay meaningful */
-        int tmp = kx;
-        kx = ky;
-        ky = tmp;
-    }
+    /* kz: the dominant axis (ties to the later one), by arithmetic, not
+     * branches: for rays in every direction the comparisons are coin tosses. */
+    const int x_max = (ax > ay) & (ax > az), y_max = !(ax > ay) & (ay > az);
+    const int kz = 2 - 2 * x_max - y_max;
+    static const int gc_next_axis[3] = {1, 2, 0};
+    const int kx0 = gc_next_axis[kz], ky0 = gc_next_axis[kx0];
+    /* keep the winding so the sign tests stay meaningful */
+    const int flip = r->d[kz] < 0.0;
+    const int kx = flip ? ky0 : kx0, ky = flip ? kx0 : ky0;
     r->kx = kx;
     r->ky = ky;
     r->kz = kz;

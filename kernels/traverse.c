@@ -69,6 +69,18 @@ static gc_status mail_open(const gc_grid *g, gc_mail *m, gc_mail **use, char *er
 #define GC_MASKED_DDA 0
 #endif
 
+/* max(x, 0) then min(., top), as two selects the compiler cannot turn into
+ * branches (x finite): which face a ray enters a node by is a coin toss. */
+static inline double gc_clamp_cell(double x, double top)
+{
+#if GC_MASKED_DDA
+    return _mm_cvtsd_f64(_mm_min_sd(_mm_max_sd(_mm_set_sd(x), _mm_setzero_pd()), _mm_set_sd(top)));
+#else
+    x = x > 0.0 ? x : 0.0;
+    return x < top ? x : top;
+#endif
+}
+
 #if defined(GC_HAVE_PACKED_WATERTIGHT)
 #define GC_WT_SIMD 2
 #else

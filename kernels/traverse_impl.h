@@ -40,20 +40,21 @@ GC_TW_ATTR static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, con
         double p = r->o[i] + ta * r->d[i];
         double f = floor((p - nd->lo[i]) * nd->inv_cell[i]);
         double top = (double)(nd->n[i] - 1);
-        f = f > 0.0 ? (f < top ? f : top) : 0.0; /* NaN-free: p is finite */
-        c[i] = (int32_t)f;
-        if (r->d[i] > 0.0) {
-            left[i] = nd->n[i] - c[i];
-            stride[i] = axis_stride[i];
-            double edge = (c[i] + 1 == nd->n[i]) ? nd->hi[i] : nd->lo[i] + (double)(c[i] + 1) * nd->cell[i];
-            t_next[i] = (edge - r->o[i]) * r->inv_d[i];
-            dt[i] = nd->cell[i] * r->inv_d[i];
-        } else if (r->d[i] < 0.0) {
-            left[i] = c[i] + 1;
-            stride[i] = -axis_stride[i];
-            double edge = nd->lo[i] + (double)c[i] * nd->cell[i];
-            t_next[i] = (edge - r->o[i]) * r->inv_d[i];
-            dt[i] = -nd->cell[i] * r->inv_d[i];
+        c[i] = (int32_t)gc_clamp_cell(f, top); /* NaN-free: p is finite */
+        /* A ray's direction signs are coin tosses for the branch predictor
+         * (three a node entered): the sign enters as a number, and the one
+         * branch left, on a zero component, is almost never taken. */
+        if (r->d[i] != 0.0) {
+            const int32_t pos = r->d[i] > 0.0;
+            const int32_t n_i = (int32_t)nd->n[i];
+            left[i] = c[i] + 1 + pos * (n_i - 2 * c[i] - 1); /* n - c going up, c + 1 down */
+            stride[i] = (2 * (int64_t)pos - 1) * axis_stride[i];
+            /* the boundary ahead: the cell's upper face going up, its lower face going down;
+             * the grid's last face is its box's own */
+            const int32_t e = c[i] + pos;
+            const double edges[2] = {nd->lo[i] + (double)e * nd->cell[i], nd->hi[i]};
+            t_next[i] = (edges[e == n_i] - r->o[i]) * r->inv_d[i];
+            dt[i] = fabs(nd->cell[i] * r->inv_d[i]);
         } else {
             left[i] = c[i] + 2; /* never reached */
             stride[i] = 0;
