@@ -141,7 +141,8 @@ GC_INLINE void gc_ray_prepare(gc_ray *r, const double *o, const double *d)
     const int kx0 = gc_next_axis[kz], ky0 = gc_next_axis[kx0];
     /* keep the winding so the sign tests stay meaningful */
     const int flip = r->d[kz] < 0.0;
-    const int kx = flip ? ky0 : kx0, ky = flip ? kx0 : ky0;
+    const int swap = (kx0 ^ ky0) & -flip; /* exchanges kx and ky when flip, by arithmetic */
+    const int kx = kx0 ^ swap, ky = ky0 ^ swap;
     r->kx = kx;
     r->ky = ky;
     r->kz = kz;

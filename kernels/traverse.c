@@ -69,6 +69,21 @@ static gc_status mail_open(const gc_grid *g, gc_mail *m, gc_mail **use, char *er
 #define GC_MASKED_DDA 0
 #endif
 
+/* The index of the lowest set bit of m (m != 0). */
+static inline int gc_lowest_bit(int m)
+{
+#if defined(__GNUC__)
+    return __builtin_ctz((unsigned)m);
+#else
+    int i = 0;
+    while (!(m & 1)) {
+        m >>= 1;
+        ++i;
+    }
+    return i;
+#endif
+}
+
 /* max(x, 0) then min(., top), as two selects the compiler cannot turn into
  * branches (x finite): which face a ray enters a node by is a coin toss. */
 static inline double gc_clamp_cell(double x, double top)

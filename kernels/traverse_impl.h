@@ -188,23 +188,27 @@ GC_TW_ATTR static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, con
                 const gc_pack *const pk_last = ref_tris + last / GC_LANES;
                 int keep = full & (full << (cell.begin % GC_LANES)); /* lanes of this cell */
                 const int keep_last = full >> (GC_LANES - 1 - last % GC_LANES);
+                /* One branch per pack, the loop's own: the last pack's mask is a
+                 * select (how many packs a cell spans is a coin toss). */
                 for (;; ++pk) {
-                    if (pk == pk_last) {
-                        keep &= keep_last;
-                    }
+                    const int is_last = pk == pk_last;
+                    keep &= is_last ? keep_last : full;
 #if GC_TW_SIMD == 4
                     int m = gc_isect_watertight_signs_avx2(&rayv, &pk->c[0][0]) & keep;
 #else
                     int m = gc_isect_watertight_signs_sse2(&rayv, &pk->c[0][0]) & keep;
 #endif
-                    for (int lane = 0; m; ++lane, m >>= 1) {
+                    /* only the lanes that passed, lowest first */
+                    while (m) {
+                        const int lane = gc_lowest_bit(m);
+                        m &= m - 1;
                         double t;
-                        if ((m & 1) && gc_isect_watertight_finish_inline(&ray, &pk->c[0][lane], best_t, &t)) {
+                        if (gc_isect_watertight_finish_inline(&ray, &pk->c[0][lane], best_t, &t)) {
                             best_t = t;
                             best_prim = pk->id[lane];
                         }
                     }
-                    if (pk == pk_last) {
+                    if (is_last) {
                         break;
                     }
                     keep = full;
