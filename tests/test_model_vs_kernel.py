@@ -272,3 +272,41 @@ def test_ten_million_triangles_via_stats_only(ratio):
         for key in ("steps", "tests", "subgrids"):
             assert math.isfinite(plan[key]) and plan[key] >= 0
         assert 0 < plan["memory_bytes"] < 2 ** 63
+
+
+#: Closed scans whose two-level plans put the surface's stop on the subgrid count.
+NESTED_SURFACE_IDS = ["builtin:sphere", "mesh:stanford_bunny_69k.obj", "mesh:armadillo_86k.obj"]
+#: The model's subgrids a ray against the kernel's at r = 0.2: 1.50 against the bunny's 1.54,
+#: armadillo's 1.49 and the sphere's 1.88 (by the distance alone 2.13, 2.05 and 1.69: a ray that
+#: meets the sphere near its rim enters several subgrids before it hits); tests 20.1, 27.8 and
+#: 16.7 against the kernel's 15.6, 17.4 and 17.2 (by the distance alone 28.5, 38.0 and 18.8).
+NESTED_SUBGRIDS_REL_TOL = 0.25
+
+
+@pytest.mark.parametrize("i, scene_id", list(enumerate(NESTED_SURFACE_IDS)), ids=NESTED_SURFACE_IDS)
+def test_two_level_counts_stop_at_the_surface(i, scene_id):
+    """A closed scan's two-level plan: rays that hit stop in about the first subgrid they enter,
+    so the model's subgrids a ray meet the kernel's within 25% and its tests are nearer the
+    kernel's than the distance's scaling alone gives (``predict._terminated_nested``)."""
+    from calibrate import predict as P
+    from models.general import cell_fraction
+
+    scene = _scene(scene_id)
+    stats = P.scene_statistics(scene)
+    k = resolve_constants(ratio=0.2)
+    plan, _ = P._analytic_plan(scene, stats, k, "2", False)
+    counts, f = plan["counts"], plan["terms"].traversed_fraction
+    assert counts.levels == 2 and f < 1.0
+    grid, built = P.recommended_grid(scene, ratio=0.2, levels="2")
+    assert built["levels"] == 2 and built["resolution"] == list(counts.top_resolution)
+    o, d = rays.isotropic(scene.box_lo, scene.box_hi, 8192, 4700 + i)
+    _, tests, subgrids = grid.count(o, d)
+    k_tests, k_sub = float(tests.mean()), float(subgrids.mean())
+    _, m_tests, m_sub, _ = P._terminated_nested(counts, stats, f)
+    g = cell_fraction(f, counts.steps)
+    assert m_sub == pytest.approx(k_sub, rel=NESTED_SUBGRIDS_REL_TOL)
+    assert m_sub < g * counts.subgrids  # the surface stopped them sooner than the distance
+    assert abs(m_tests - k_tests) < abs(g * counts.tests - k_tests)
+    # deeper grids keep the distance's scaling (their count mixes every level's subgrids)
+    deeper = P._terminated_nested(dataclasses.replace(counts, levels=3), stats, f)
+    assert deeper[1:3] == pytest.approx((g * counts.tests, g * counts.subgrids))
