@@ -418,9 +418,10 @@ def sample_termination(scene: Scene, rays: int = TERMINATION_RAYS, seed: int = T
     """Where isotropic lines through the grid box stop on the mesh: a :class:`models.stats.TerminationSample`.
 
     ``rays`` lines of :func:`calibrate.rays.isotropic` (the model's ray distribution) are
-    traced through the uniform grid of :func:`termination_grid_resolution`; the fraction is the box chord covered before the first hit (all of it on a
-    miss), summed over the rays, over the chords summed: what scales the expected steps
-    of the count model, whose cells along a line are in proportion to its length.
+    traced through the uniform grid of :func:`termination_grid_resolution`; the fraction is
+    the box chord covered before the first hit (all of it on a miss), summed over the rays,
+    over the chords summed: what scales the expected steps of the count model, whose cells
+    along a line are in proportion to its length.
     """
     from . import rays as _rays_mod
 
