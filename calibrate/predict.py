@@ -1089,7 +1089,7 @@ def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analyt
     out = dict(scene=scene.name, triangles=int(stats.n_triangles), scene_class=cls, scene_class_reason=cls_reason,
                fidelity=fidelity, units=k.units, rays=rays, mailbox=mailbox,
                constants=dict(t_setup=k.t_setup, t_step=k.t_step, t_int=k.t_int, t_sub=k.t_sub, ratio=k.ratio,
-                              fitted_on=k.fitted_on, t_mem=k.t_mem, cache_bytes=k.cache_bytes),
+                              fitted_on=k.fitted_on, t_mem=k.t_mem, cache_bytes=k.cache_bytes, t_visit=k.t_visit),
                levels=plan["levels"], memory_bytes=int(plan["memory_bytes"]), predicted=predicted,
                effects=effects, baselines=base, baselines_detail=base_detail, notes=notes)
     if "simulation" in plan:

@@ -447,3 +447,20 @@ def test_the_samples_grid_bounds_its_references(monkeypatch):
     coarse = P.sample_termination(scene)
     monkeypatch.undo()
     assert coarse == P.sample_termination(scene)
+
+
+@pytest.mark.parametrize("levels", ["1", "2"])
+def test_the_json_constants_price_the_predicted_counts(levels):
+    """Every constant the predicted cost uses is in the output's ``constants``: with them a
+    reader recomputes ``model_cost_per_ray`` from the predicted counts per ray (T_visit
+    among them: it was left out once)."""
+    planted = dict(PLANTED_NS, t_visit_ns=7.0)
+    out = predict(Scene.builtin("sphere"), constants=planted, fidelity="analytic", levels=levels)
+    c, p = out["constants"], out["predicted"]
+    assert c["t_visit"] == pytest.approx(7.0) and c["t_mem"] == 0.0
+    assert p["visits_per_ray"] > 0
+    if levels == "2":
+        assert p["subgrids_per_ray"] > 0
+    priced = (c["t_setup"] + c["t_step"] * p["steps_per_ray"] + c["t_int"] * p["tests_per_ray"]
+              + c["t_sub"] * p["subgrids_per_ray"] + c["t_visit"] * p["visits_per_ray"])
+    assert p["model_cost_per_ray"] == pytest.approx(priced, rel=1e-9)
