@@ -14,6 +14,8 @@ Schema (version :data:`SCHEMA_VERSION`), one JSON object::
                                         #   when not fitted (diagnostics.t_mem_skipped says why)
         "t_visit_ns": {...} or null,    # per occupied cell entered; null or absent when not
                                         #   fitted (diagnostics.t_visit_skipped says why)
+        "t_hit_ns":   {...} or null,    # per ray that finds a hit; null or absent when not
+                                        #   fitted (diagnostics.t_hit_skipped says why)
         "ratio":      {...}             # r = T_int / T_step, dimensionless
       },
       "isolated": {"t_step_ns": {"median": m, "ci95": [lo, hi]}, ...},
@@ -32,6 +34,7 @@ Schema (version :data:`SCHEMA_VERSION`), one JSON object::
          "memory_bytes": int, "misses": float,   # optional: the grid's bytes, and the cache
                                                  #   lines its batch fetched from beyond the cache
          "visits": int,                          # optional: occupied cells entered (<= steps)
+         "hits": int,                            # optional: rays that found a hit (<= rays)
          ...extra keys kept}
       ],
       "meta": {...},                    # free-form (tool version, budget, wall time, ...);
@@ -42,7 +45,8 @@ Schema (version :data:`SCHEMA_VERSION`), one JSON object::
       }                                 #   2/3 of the cost of incoherent ones); predictions for
     }                                   #   that ray set use it, others use ``constants``
 
-Constants are in ns per unit (ray, cell step, triangle test, subgrid entry, cache line).
+Constants are in ns per unit (ray, cell step, triangle test, subgrid entry, cache line,
+occupied cell entered, ray that hits).
 :func:`load` validates everything and raises :class:`calibrate._io.UserError`
 (a ``ValueError``) whose message names the file and the offending key.
 """
@@ -96,11 +100,11 @@ MAX_STORED_SAMPLES = 2000
 # Count fields of a measurement (batch totals); subgrids may be omitted (= 0).
 COUNT_FIELDS = ("rays", "steps", "tests", "subgrids")
 #: Counts a measurement may carry, each fitted (with its constant) when the timings call for it.
-OPTIONAL_COUNT_FIELDS = ("misses", "visits")
-#: The optional counts a calibration's fit takes by default: both, each fitted when the timings
-#: call for it (:func:`fit_in_context`).  ``optional=("misses",)`` leaves T_visit out, as the
-#: fit did before the kernels' masked DDA step (docs/calibration.md, "Occupied cells").
-DEFAULT_OPTIONAL_COUNTS = ("misses", "visits")
+OPTIONAL_COUNT_FIELDS = ("misses", "visits", "hits")
+#: The optional counts a calibration's fit takes by default: all, each fitted when the timings
+#: call for it (:func:`fit_in_context`).  ``optional=("misses",)`` leaves T_visit and T_hit out,
+#: as the fit did before the kernels' masked DDA step (docs/calibration.md, "Occupied cells").
+DEFAULT_OPTIONAL_COUNTS = ("misses", "visits", "hits")
 
 
 # ---------------------------------------------------------------------------
@@ -212,7 +216,7 @@ def _validate_samples(x, where: str, constants: Mapping) -> None:
     for key in ("t_setup_ns", "t_step_ns", "t_int_ns"):
         if key not in cols:
             _fail(f"{where}.columns", f"missing column {key!r}")
-    for key in ("t_sub_ns", "t_mem_ns", "t_visit_ns"):
+    for key in ("t_sub_ns", "t_mem_ns", "t_visit_ns", "t_hit_ns"):
         if constants.get(key) is not None and key not in cols:
             _fail(f"{where}.columns", f"missing column {key!r} although constants.{key} is set")
     values = obj["values"]
@@ -284,6 +288,12 @@ def _validate_measurement(m, where: str) -> None:
         if _is_number(obj["steps"]) and v > obj["steps"]:
             _fail(f"{where}.visits", f"{v:g} occupied cells entered but only {obj['steps']:g} cells stepped: "
                                      "visits are part of the steps")
+    if "hits" in obj:
+        v = _finite(obj["hits"], f"{where}.hits")
+        if v < 0 or not v.is_integer():
+            _fail(f"{where}.hits", f"must be a whole number of rays >= 0, got {v:g}")
+        if _is_number(obj["rays"]) and v > obj["rays"]:
+            _fail(f"{where}.hits", f"{v:g} rays hit but the batch traced only {obj['rays']:g}")
     if obj["rays"] < 1:
         _fail(f"{where}.rays", "a batch must trace at least one ray")
     vals = obj["values_ns"]
@@ -598,10 +608,10 @@ def design_from_measurements(
     records marked ``held_back`` (kept out of the fit to test its predictions)
     unless ``include_held_back``.
     optional : the optional counts (of OPTIONAL_COUNT_FIELDS) to take, each when every
-        chosen record has it; by default both (DEFAULT_OPTIONAL_COUNTS).
+        chosen record has it; by default all (DEFAULT_OPTIONAL_COUNTS).
     Returns {rays, steps, tests, subgrids: (J,) float arrays, times_ns: J lists}, and
-    ``misses`` (the memory effect's count) and ``visits`` (occupied cells entered) as
-    ``optional`` says.
+    ``misses`` (the memory effect's count), ``visits`` (occupied cells entered) and ``hits``
+    (rays that found a hit) as ``optional`` says.
     """
     if kind not in MEASUREMENT_KINDS:
         raise UserError(f"kind must be one of {', '.join(MEASUREMENT_KINDS)}, got {kind!r}")
@@ -628,24 +638,26 @@ def design_from_measurements(
     return design
 
 
-#: Least rise of the maximum log posterior for which an optional term (T_visit, T_mem) is
+#: Least rise of the maximum log posterior for which an optional term (T_visit, T_mem, T_hit) is
 #: fitted: half the 5% point of chi-square with one degree of freedom (3.84 / 2), a
 #: likelihood-ratio test.
 MEMORY_MIN_GAIN = 1.92
 #: The optional terms, in the order they are tested: (count column, constant, what it is).
 OPTIONAL_TERMS = (("visits", "t_visit_ns", "T_visit not fitted, occupied cells are priced as any cell step"),
-                  ("misses", "t_mem_ns", "T_mem not fitted, the memory effect is left out"))
+                  ("misses", "t_mem_ns", "T_mem not fitted, the memory effect is left out"),
+                  ("hits", "t_hit_ns", "T_hit not fitted, a ray that hits is priced as one that misses"))
 
 
 def fit_in_context(design: Mapping, **fit_kwargs) -> _fit.FitResult:
     """:func:`calibrate.fit.fit` with the optional terms the timings call for.
 
     An optional term (T_visit when the design carries ``visits``, then T_mem when it
-    carries ``misses``) is fitted when adding it raises the maximum log posterior by at
-    least MEMORY_MIN_GAIN (the timings reject T = 0 at the 5% level), given the terms
-    already kept.  Otherwise, or when the fit with it fails (e.g. its interval reaches
-    towards 0), the design is fitted without it, and ``diagnostics.t_visit_skipped`` /
-    ``diagnostics.t_mem_skipped`` say why.  An error of the fit without them is raised as is.
+    carries ``misses``, then T_hit when it carries ``hits``) is fitted when adding it
+    raises the maximum log posterior by at least MEMORY_MIN_GAIN (the timings reject
+    T = 0 at the 5% level), given the terms already kept.  Otherwise, or when the fit
+    with it fails (e.g. its interval reaches towards 0), the design is fitted without
+    it, and ``diagnostics.t_visit_skipped``, ``t_mem_skipped`` or ``t_hit_skipped`` say
+    why.  An error of the fit without them is raised as is.
     """
     design = {k: v for k, v in design.items()
               if k not in OPTIONAL_COUNT_FIELDS or (v is not None and np.any(np.asarray(v) > 0))}

@@ -14,7 +14,8 @@ the sweep's scale (:func:`refine_level`) before they join it.  It reports
   (pbrt v2, Manta 8N, Manta's two-level top, Cleary lambda = 5, Kalojanov's two-level grid);
 - the predicted curve: the constants times the model's counts per ray (uniform grids:
   the general model with the effects the prediction kept; nested grids: the kernel's
-  counts, the model not being defined for scaled subgrids), with the posterior's 95% band.
+  counts, the model not being defined for scaled subgrids), with the posterior's 95% band;
+  with a calibrated T_hit, plus T_hit times the share of the sweep's rays that hit.
 
 Curves (``--levels``): ``1`` sweeps uniform grids, ``2`` two-level grids whose top and
 depth-1 subgrid resolutions are both scaled by the square root of the sweep factor (so
@@ -35,7 +36,7 @@ import numpy as np
 
 from . import predict as _predict
 from . import sweep as _sweep
-from ._grid import Scene
+from ._grid import Grid, Scene
 from ._io import UserError, atomic_write_bytes, check_writable
 from .protocol import median_mad
 from .sweep import GridSpec
@@ -152,7 +153,8 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
     ``best_measured_resolution``, ``best_measured_levels``, ``best_measured_time_ns``,
     ``baselines`` (name -> ``resolution``, ``levels``, ``penalty``, ``penalty_ci95``, ``time_ns``,
     ``mad_ns``, ``cells``), ``curves`` (per depth: ``levels``, ``fit``, ``points``),
-    ``points`` (every sweep point), ``notes``.
+    ``points`` (every sweep point), ``hits_per_ray`` (the share of the sweep's rays that hit,
+    priced at T_hit in the predicted curve; 0 without T_hit), ``notes``.
     """
     levels = _predict._check_choice("levels", levels, LEVEL_CHOICES)
     rays = _predict._check_choice("ray set", rays, _predict.RAY_KINDS)
@@ -211,6 +213,11 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
     extrapolated = _predict.extrapolation_note(k, pred["memory_bytes"])
     if extrapolated:
         notes.append(extrapolated)
+    # the share of the sweep's own rays that hit, priced at T_hit (the same for every grid)
+    hits = 0.0
+    if k.t_hit > 0:
+        t_first, _ = Grid.uniform(scene, _predict.termination_grid_resolution(scene)).intersect(o, d)
+        hits = float(np.count_nonzero(np.isfinite(t_first))) / float(len(t_first))
     curves, all_points = [], []
     for L, specs in curve_specs.items():
         pts = []
@@ -223,7 +230,8 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
                      values=len(m.get("values_ns") or []))
             if "median_ns" in m:
                 steps, tests, subs, visits, source = _model_counts(stats, terms, spec, m)
-                band = k.cost_samples(steps, tests, subs, float(m.get("memory_bytes") or 0.0), visits)
+                band = (k.cost_samples(steps, tests, subs, float(m.get("memory_bytes") or 0.0), visits)
+                        + k.samples["t_hit"] * hits)
                 p["predicted"] = dict(median=float(np.median(band)), ci95=[float(np.percentile(band, 2.5)),
                                                                          float(np.percentile(band, 97.5))],
                                       counts=source)
@@ -295,7 +303,7 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
         best_measured_resolution=best_curve["fit"]["resolution"], best_measured_levels=best_curve["levels"],
         best_measured_time_ns=t_best, best_measured_factor=best_curve["fit"]["factor"],
         baselines=out_base, curves=curves, points=all_points, t_step_scale_ns=t_step_ns, refine_level=level,
-        notes=notes))
+        hits_per_ray=hits, notes=notes))
 
 
 def _deciding_grids(factors, curve_specs: dict, index: dict, measured: list, chosen) -> list[int]:

@@ -45,6 +45,9 @@ CONSTANTS = (("t_setup_ns", "GRIDCAL_T_SETUP_NS", "T_setup, cost of one ray's se
              ("t_visit_ns", "GRIDCAL_T_VISIT_NS", "T_visit, cost of entering one cell that holds triangles, beyond "
               "its step (`calibrate predict` adds it, the resolution functions of this header do not)",
               "ns per occupied cell entered"),
+             ("t_hit_ns", "GRIDCAL_T_HIT_NS", "T_hit, cost of a ray's hit beyond its tests (`calibrate predict` "
+              "adds it for the share of rays that hit; the resolution functions of this header do not)",
+              "ns per ray that hits"),
              ("ratio", "GRIDCAL_RATIO", "r = T_int / T_step, the ratio every resolution below uses",
               "dimensionless"))
 #: The public functions of the header (``--json`` lists them).

@@ -9,8 +9,9 @@ batch totals. Its median batch time is
 
     mu_j = rays_j*T_setup + steps_j*T_step + tests_j*T_int + subgrids_j*T_sub   (ns)
 
-(plus ``misses_j*T_mem`` and ``visits_j*T_visit`` when the design carries those
-counts: cache lines fetched from beyond the cache, occupied cells entered), and repeat k is ``y_jk = mu_j * exp(u_j + e_jk)``: multiplicative noise, so
+(plus ``misses_j*T_mem``, ``visits_j*T_visit`` and ``hits_j*T_hit`` when the design carries
+those counts: cache lines fetched from beyond the cache, occupied cells entered, rays that
+found a hit), and repeat k is ``y_jk = mu_j * exp(u_j + e_jk)``: multiplicative noise, so
 every constant is fitted as its logarithm (positive by construction) and
 residuals are relative. Two noise terms:
 
@@ -31,8 +32,8 @@ residuals are relative. Two noise terms:
 
 Priors: each ``log T`` uniform on a box set by the data (no term may exceed
 ``PRIOR_UPPER_FACTOR`` times the fastest batch it appears in, and the box spans
-``PRIOR_RANGE_DECADES`` decades below that), except the optional term T_visit, flat
-in ``T`` on the same box (``FLAT_PRIOR_NAMES``); ``tau`` half-normal
+``PRIOR_RANGE_DECADES`` decades below that), except the optional terms T_visit and T_hit,
+flat in ``T`` on the same box (``FLAT_PRIOR_NAMES``); ``tau`` half-normal
 with scale ``TAU_PRIOR_SCALE``. ``mu_j`` is the *median* batch time (``exp`` of the mean
 log time), which is what the protocol reports.
 
@@ -89,10 +90,11 @@ __all__ = [
 # Count column in a design -> the constant (ns per unit) it multiplies.
 # ``misses`` is the memory effect's count (models/memory.py): cache lines fetched from
 # beyond the cache; ``visits`` the occupied cells entered (cells holding triangles, part
-# of ``steps``), whose tests start a new run of packs.  Each is fitted only when a design
-# carries it.
-COUNT_KEYS = ("rays", "steps", "tests", "subgrids", "misses", "visits")
-CONSTANT_NAMES = ("t_setup_ns", "t_step_ns", "t_int_ns", "t_sub_ns", "t_mem_ns", "t_visit_ns")
+# of ``steps``), whose tests start a new run of packs; ``hits`` the rays that found a hit
+# (what a ray does when it finds one: the winning test's last stage, the hit recorded).
+# Each is fitted only when a design carries it.
+COUNT_KEYS = ("rays", "steps", "tests", "subgrids", "misses", "visits", "hits")
+CONSTANT_NAMES = ("t_setup_ns", "t_step_ns", "t_int_ns", "t_sub_ns", "t_mem_ns", "t_visit_ns", "t_hit_ns")
 RATIO_NAME = "ratio"
 CONSTANT_LABELS = {
     "t_setup_ns": "T_setup",
@@ -101,6 +103,7 @@ CONSTANT_LABELS = {
     "t_sub_ns": "T_sub",
     "t_mem_ns": "T_mem",
     "t_visit_ns": "T_visit",
+    "t_hit_ns": "T_hit",
 }
 # Columns that must be present; subgrids is optional (uniform grids only).
 REQUIRED_COUNT_KEYS = ("rays", "steps", "tests")
@@ -129,7 +132,7 @@ PRIOR_RANGE_DECADES = 8.0
 # the data put at a few ns but cannot tell from 0 at the 5% level gets most of its
 # posterior at 1e-5 ns; flat in T, it keeps the data's shape.  (T_mem keeps the
 # log-uniform prior it was validated with.)
-FLAT_PRIOR_NAMES = ("t_visit_ns",)
+FLAT_PRIOR_NAMES = ("t_visit_ns", "t_hit_ns")
 
 # --- ill-posed designs -------------------------------------------------------
 # Condition number of the column-normalised relative design matrix above
@@ -212,11 +215,11 @@ class FitResult:
 
     constants : dict name -> {"median": float, "ci68": (lo, hi), "ci95": (lo, hi)},
         names ``t_setup_ns``, ``t_step_ns``, ``t_int_ns``, ``t_sub_ns``, ``t_mem_ns``,
-        ``t_visit_ns`` (ns per ray, step, test, subgrid entry, cache line beyond the
-        cache, occupied cell entered) and
+        ``t_visit_ns``, ``t_hit_ns`` (ns per ray, step, test, subgrid entry, cache line
+        beyond the cache, occupied cell entered, ray that hits) and
         ``ratio`` (T_int / T_step, dimensionless). ``t_sub_ns`` is None when the
         design has no subgrids, ``t_mem_ns`` when it has no ``misses``, ``t_visit_ns``
-        when it has no ``visits``
+        when it has no ``visits``, ``t_hit_ns`` when it has no ``hits``
         (and any constant not fitted, see ``fit(required=...)``, is None).
     names : tuple of str, the fitted constants, columns of ``samples``.
     samples : (S, P) float, thinned posterior samples of the fitted constants, ns.
@@ -314,7 +317,7 @@ def prepare_design(design: Mapping, required: Sequence[str] = REQUIRED_COUNT_KEY
     """Validate a design and reduce it to per-configuration statistics.
 
     design : mapping with ``rays``, ``steps``, ``tests`` (J,) batch totals,
-        optional ``subgrids``, ``misses`` and ``visits`` (J,), and ``times_ns``: a (J, K) array or J
+        optional ``subgrids``, ``misses``, ``visits`` and ``hits`` (J,), and ``times_ns``: a (J, K) array or J
         sequences of repeat values (ns per batch, > 0).
 
     required : count columns that must be present and non-zero somewhere

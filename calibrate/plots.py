@@ -17,7 +17,8 @@ from ._io import atomic_write_bytes
 from .fit import predict_batch_times
 
 LABELS = {"t_setup_ns": "T_setup (ns)", "t_step_ns": "T_step (ns)", "t_int_ns": "T_int (ns)",
-          "t_sub_ns": "T_sub (ns)", "t_mem_ns": "T_mem (ns)", "t_visit_ns": "T_visit (ns)", "ratio": "r = T_int/T_step"}
+          "t_sub_ns": "T_sub (ns)", "t_mem_ns": "T_mem (ns)", "t_visit_ns": "T_visit (ns)", "t_hit_ns": "T_hit (ns)",
+          "ratio": "r = T_int/T_step"}
 #: Figure resolution, dots per inch.
 DPI = 110
 
@@ -37,7 +38,8 @@ def corner(cal: dict, path: Path) -> Path:
     import matplotlib.pyplot as plt
 
     samples = calfile.samples_by_name(cal)
-    names = [n for n in ("t_setup_ns", "t_step_ns", "t_int_ns", "t_sub_ns", "t_mem_ns", "t_visit_ns", "ratio") if n in samples]
+    names = [n for n in ("t_setup_ns", "t_step_ns", "t_int_ns", "t_sub_ns", "t_mem_ns", "t_visit_ns", "t_hit_ns",
+                         "ratio") if n in samples]
     k = len(names)
     fig, axes = plt.subplots(k, k, figsize=(2.2 * k, 2.2 * k), squeeze=False)
     for i, yi in enumerate(names):

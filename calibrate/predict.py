@@ -171,7 +171,7 @@ _SAMPLED_STATS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 class Constants:
     """Medians and posterior samples of the hardware constants.
 
-    Attributes: ``t_setup, t_step, t_int, t_sub, t_mem, t_visit`` (floats, medians) and
+    Attributes: ``t_setup, t_step, t_int, t_sub, t_mem, t_visit, t_hit`` (floats, medians) and
     ``samples`` (dict name -> (S,) float64, same names without ``_ns``);
     ``units`` is ``"ns"`` or ``"T_step"`` (ratio mode); ``notes`` lists assumptions;
     ``fitted_on`` is the ray set the constants were fitted on alone, or None (all of them);
@@ -180,11 +180,12 @@ class Constants:
     """
 
     def __init__(self, t_setup, t_step, t_int, t_sub, samples, units, notes, fitted_on=None, t_mem=0.0,
-                 cache_bytes=None, largest_grid_bytes=None, t_visit=0.0):
+                 cache_bytes=None, largest_grid_bytes=None, t_visit=0.0, t_hit=0.0):
         self.t_setup, self.t_step, self.t_int, self.t_sub = (float(t_setup), float(t_step), float(t_int),
                                                              float(t_sub))
         self.t_mem = float(t_mem)
         self.t_visit = float(t_visit)
+        self.t_hit = float(t_hit)
         self.cache_bytes = None if cache_bytes is None else int(cache_bytes)
         self.largest_grid_bytes = None if largest_grid_bytes is None else int(largest_grid_bytes)
         self.samples = samples
@@ -269,12 +270,12 @@ def resolve_constants(constants=None, samples=None, ratio=None) -> Constants:
                      f"{RATIO_MODE_T_SUB_IN_T_STEP:g} (assumed); costs are in units of T_step")
         return Constants(0.0, 1.0, r, RATIO_MODE_T_SUB_IN_T_STEP,
                          dict(t_setup=one(0.0), t_step=one(1.0), t_int=one(r), t_sub=one(RATIO_MODE_T_SUB_IN_T_STEP),
-                              t_mem=one(0.0), t_visit=one(0.0)),
+                              t_mem=one(0.0), t_visit=one(0.0), t_hit=one(0.0)),
                          "T_step", notes)
     if constants is None and samples is None:
         raise ValueError("no calibration: run `calibrate run` first, pass a calibration file, or give a ratio "
                          "T_int/T_step")
-    names = ("t_setup", "t_step", "t_int", "t_sub", "t_mem", "t_visit")
+    names = ("t_setup", "t_step", "t_int", "t_sub", "t_mem", "t_visit", "t_hit")
     arrays = {}
     if samples is not None:
         for n in names:
@@ -326,6 +327,10 @@ def resolve_constants(constants=None, samples=None, ratio=None) -> Constants:
         notes.append(f"occupied cells: T_visit = {med['t_visit']:.3g} ns per occupied cell a ray enters")
     else:
         med["t_visit"] = 0.0
+    if med.get("t_hit", 0.0) > 0:
+        notes.append(f"hits: T_hit = {med['t_hit']:.3g} ns per ray that finds a hit")
+    else:
+        med["t_hit"] = 0.0
     size = next(iter(arrays.values())).size if arrays else 1
     for n in names:
         if n not in arrays:
@@ -342,7 +347,7 @@ def resolve_constants(constants=None, samples=None, ratio=None) -> Constants:
             raise ValueError(f"largest_grid_bytes must be > 0, got {largest}")
     return Constants(med["t_setup"], med["t_step"], med["t_int"], med["t_sub"], arrays, "ns", notes,
                      fitted_on=fitted_on, t_mem=med["t_mem"], cache_bytes=cache, largest_grid_bytes=largest,
-                     t_visit=med["t_visit"])
+                     t_visit=med["t_visit"], t_hit=med["t_hit"])
 
 
 def extrapolation_note(k: Constants, memory_bytes) -> str | None:
@@ -1016,7 +1021,8 @@ def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analyt
     ``fidelity``, ``units`` ("ns" or "T_step"), ``levels`` (top first, each with
     ``resolution`` [nx, ny, nz], ``grids``, ``cells``, ``references``), ``memory_bytes``,
     ``predicted`` (``ns_per_ray`` {median, ci95} or None in ratio mode, ``cost_t_step``
-    in ratio mode, ``steps_per_ray``, ``tests_per_ray``, ``subgrids_per_ray``, ``visits_per_ray``),
+    in ratio mode, ``steps_per_ray``, ``tests_per_ray``, ``subgrids_per_ray``, ``visits_per_ray``,
+    ``hits_per_ray``: the share of rays that hit, priced at T_hit; 0 without T_hit),
     ``effects`` (list of {name, used, change, reason}), ``baselines`` (name ->
     top-level [nx, ny, nz]), ``baselines_detail``, ``notes``, ``timing_s``.
     """
@@ -1050,9 +1056,12 @@ def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analyt
     # the paper fidelity is the talk's model: no memory term, no occupied cells
     plan_bytes = float(plan["memory_bytes"]) if fidelity != "paper" else 0.0
     visits = float(plan.get("visits", 0.0)) if fidelity != "paper" else 0.0
-    cost = _interval(k.cost_samples(steps, tests, subgrids, plan_bytes, visits))
+    # a ray that hits costs T_hit more: the share of isotropic lines that hit the mesh (sampled
+    # where the traversed fraction is); the same at every resolution, so no plan depends on it
+    hits = float(termination_fraction(stats)[1]) if fidelity != "paper" and k.t_hit > 0 else 0.0
+    cost = _interval(k.cost_samples(steps, tests, subgrids, plan_bytes, visits) + k.samples["t_hit"] * hits)
     predicted = dict(ns_per_ray=cost if k.units == "ns" else None, steps_per_ray=steps, tests_per_ray=tests,
-                     subgrids_per_ray=subgrids, visits_per_ray=visits)
+                     subgrids_per_ray=subgrids, visits_per_ray=visits, hits_per_ray=hits)
     if k.has_memory and fidelity != "paper":
         predicted["lines_per_ray"] = k.lines(steps, tests, plan_bytes)
     if k.units != "ns":
@@ -1078,18 +1087,19 @@ def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analyt
         res1 = plan["levels"][0]["resolution"]
         _, m_steps, m_tests = predict_uniform(stats, res1, 0.0, 1.0, 1.0, overlap="exact", terms=terms)
         predicted["model_cost_per_ray"] = k.cost(m_steps, m_tests, 0.0, plan_bytes,
-                                                 visits_per_ray(stats, res1, terms=terms))
+                                                 visits_per_ray(stats, res1, terms=terms)) + k.t_hit * hits
     elif "counts" in plan:
         # the model's counts, also for a simulated plan (whose steps and tests are the kernel's)
         steps, tests, subgrids, visits = _terminated_nested(plan["counts"], stats, terms.traversed_fraction)
-        predicted["model_cost_per_ray"] = k.cost(steps, tests, subgrids, plan_bytes, visits)
+        predicted["model_cost_per_ray"] = k.cost(steps, tests, subgrids, plan_bytes, visits) + k.t_hit * hits
     else:
         predicted["model_cost_per_ray"] = None
     base, base_detail = _baseline_table(stats, k, terms)
     out = dict(scene=scene.name, triangles=int(stats.n_triangles), scene_class=cls, scene_class_reason=cls_reason,
                fidelity=fidelity, units=k.units, rays=rays, mailbox=mailbox,
                constants=dict(t_setup=k.t_setup, t_step=k.t_step, t_int=k.t_int, t_sub=k.t_sub, ratio=k.ratio,
-                              fitted_on=k.fitted_on, t_mem=k.t_mem, cache_bytes=k.cache_bytes, t_visit=k.t_visit),
+                              fitted_on=k.fitted_on, t_mem=k.t_mem, cache_bytes=k.cache_bytes, t_visit=k.t_visit,
+                              t_hit=k.t_hit),
                levels=plan["levels"], memory_bytes=int(plan["memory_bytes"]), predicted=predicted,
                effects=effects, baselines=base, baselines_detail=base_detail, notes=notes)
     if "simulation" in plan:
@@ -1203,7 +1213,7 @@ def constants_from_args(args, rays: str | None = None) -> dict:
                         "pass --calibration FILE, or give your own ratio with --ratio R")
     k = load_calibration_constants(path, rays)
     s = k.samples
-    names = ("t_setup", "t_step", "t_int", "t_sub", "t_mem", "t_visit")
+    names = ("t_setup", "t_step", "t_int", "t_sub", "t_mem", "t_visit", "t_hit")
     constants = {f"{n}_ns": getattr(k, n) for n in names}
     if k.fitted_on:
         constants["fitted_on"] = k.fitted_on

@@ -83,7 +83,12 @@ MIN_BUDGET_S = FIT_RESERVE_S + 4.0
 #: n^3 cells; in-context fits put it at 2-4x the isolated value, and a prior of 0.3 held
 #: it down (held-back error of isotropic rays 21% with 0.3, 14.5% with 0.7 on the same
 #: measurements; docs/calibration.md).
-PRIOR_FROM_ISOLATED = {"t_setup_ns": 0.3, "t_sub_ns": 0.7}
+#: Hit: 0.5; the one-cell suite's aimed rays (every one hits) cost 26-30 ns more than its
+#: missing ones in three runs, the in-context fits without a prior put T_hit at 35-78 ns,
+#: and without one it trades against T_setup (a scene's hits are a fixed share of its
+#: rays): the pooled chain ran 4,574 steps instead of 1,326 (docs/calibration.md, "A cost
+#: per hit").
+PRIOR_FROM_ISOLATED = {"t_setup_ns": 0.3, "t_sub_ns": 0.7, "t_hit_ns": 0.5}
 #: The isolating suites' fits take the configurations whose rays are in the steady state.
 #: A walk's first steps cost more than its later ones, and a short triangle list's tests
 #: more than a long one's (branches that a long loop trains mispredict in a short one):
@@ -398,7 +403,7 @@ def _isolated_fit(recs, seed):
                    STEADY_STEPS_PER_RAY steps                       -> T_setup, T_step
     - one cell:    batch = rays*a + aimed rays*b + tests*T_int, on the lists of at least
                    STEADY_TESTS_PER_RAY triangles (a: set-up and the one step; b: what a
-                   hitting ray adds)                                -> T_int
+                   hitting ray adds)                                -> T_int, T_hit = b
     - subgrids:    the same grid with and without a 1x1x1 subgrid in every cell;
                    each entry adds one cell step and one subgrid entry, so
                    T_sub = (time(all) - time(none)) / subgrids - T_step (paired, per side).
@@ -425,6 +430,9 @@ def _isolated_fit(recs, seed):
             problems.append(note)
         out["t_int_ns"] = calfile.constants_json(res)["t_int_ns"]
         int_samples = res.samples[:, res.names.index("t_int_ns")]
+        if res.constants.get("t_step_ns") is not None:
+            # the design with the aimed rays apart: their column's constant is what a hit adds
+            out["t_hit_ns"] = calfile.constants_json(res)["t_step_ns"]
     except (ValueError, _fit.ConvergenceError) as exc:
         problems.append(f"one-cell suite: {exc}")
     sub = [r for r in recs if r["kind"] == "isolated" and r["suite"] == "subgrid" and r["values_ns"]]

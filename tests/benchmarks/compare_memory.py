@@ -12,7 +12,8 @@ d log2(bytes)``, over the single-level grids of the sweep.
 
 The constants are the compare's own (its JSON's ``constants`` per scene) when they are
 complete, T_visit included; with ``--calibration`` (the file the compare ran with),
-that file's fit of ``--ray-set`` instead.  Reads files only: nothing is timed.
+that file's fit of ``--ray-set`` instead.  A calibrated T_hit is priced for the share
+of the sweep's rays that hit (the JSON's ``hits_per_ray``; 0 in files without it).  Reads files only: nothing is timed.
 Not a test (docs/compare.md, "What the constants miss: the grid's size").
 """
 
@@ -30,6 +31,8 @@ from calibrate import predict as P
 
 BIN_EDGES_MIB = (0, 1, 2, 4, 8, 16, 32, 64, math.inf)
 PRICED = ("t_setup", "t_step", "t_int", "t_sub", "t_visit")
+#: Priced when present: T_hit, times the share of the sweep's rays that hit (``hits_per_ray``).
+OPTIONAL = ("t_hit",)
 
 
 def _constants(scene: dict, override: dict | None) -> dict:
@@ -40,7 +43,7 @@ def _constants(scene: dict, override: dict | None) -> dict:
     if missing:
         raise SystemExit(f"{scene.get('scene')}: the compare's constants lack {', '.join(missing)} (a file written "
                          "before they were all recorded): pass --calibration FILE, the calibration it ran with")
-    return {n: float(c[n]) for n in PRICED}
+    return {n: float(c[n]) for n in PRICED} | {n: float(c.get(n) or 0.0) for n in OPTIONAL}
 
 
 def rows_of(compare: dict, override: dict | None) -> list[dict]:
@@ -52,7 +55,8 @@ def rows_of(compare: dict, override: dict | None) -> list[dict]:
             if p.get("median_ns") is None or p.get("memory_bytes") is None:
                 continue
             priced = (k["t_setup"] + k["t_step"] * p["steps"] + k["t_int"] * p["tests"]
-                      + k["t_sub"] * p.get("subgrids", 0.0) + k["t_visit"] * p.get("visits", 0.0))
+                      + k["t_sub"] * p.get("subgrids", 0.0) + k["t_visit"] * p.get("visits", 0.0)
+                      + k.get("t_hit", 0.0) * float(scene.get("hits_per_ray") or 0.0))
             out.append(dict(scene=scene["scene"], levels=int(p.get("levels", 1)), bytes=int(p["memory_bytes"]),
                             measured=float(p["median_ns"]), priced=float(priced)))
     return out
@@ -72,7 +76,7 @@ def main() -> None:
     override = None
     if args.calibration:
         k = P.load_calibration_constants(args.calibration, rays=args.ray_set)
-        override = {n: float(getattr(k, n)) for n in PRICED}
+        override = {n: float(getattr(k, n)) for n in PRICED + OPTIONAL}
     rows = rows_of(compare, override)
     if not rows:
         raise SystemExit(f"{path}: no measured grids")
