@@ -988,14 +988,17 @@ def _simulated_plan(scene, stats, k: Constants, levels, rays, mailbox):
 # the prediction
 # ---------------------------------------------------------------------------------------
 
-def _baseline_table(stats, k: Constants, terms):
+def _baseline_table(stats, k: Constants, terms, hits: float = 0.0):
+    """Each baseline's top resolution, and for the uniform ones their model counts and cost (the
+    prediction's terms; ``hits``: the share of rays that hit, priced at T_hit as the prediction's)."""
     out, detail = {}, {}
     for name, levels in _baselines.all_baselines(stats).items():
         out[name] = _res_list(levels[0])
         d = dict(levels=[_res_list(x) for x in levels])
         if len(levels) == 1:
             steps, tests, _, mem, visits = _uniform_counts(stats, levels[0], k, terms)
-            d.update(steps_per_ray=steps, tests_per_ray=tests, cost_per_ray=k.cost(steps, tests, 0.0, mem, visits))
+            d.update(steps_per_ray=steps, tests_per_ray=tests,
+                     cost_per_ray=k.cost(steps, tests, 0.0, mem, visits) + k.t_hit * hits)
         detail[name] = d
     return out, detail
 
@@ -1059,6 +1062,9 @@ def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analyt
     # a ray that hits costs T_hit more: the share of isotropic lines that hit the mesh (sampled
     # where the traversed fraction is); the same at every resolution, so no plan depends on it
     hits = float(termination_fraction(stats)[1]) if fidelity != "paper" and k.t_hit > 0 else 0.0
+    if hits and rays == "camera":
+        notes.append(f"hits: T_hit is priced for the share of isotropic lines that hit the mesh ({hits:.3g}); "
+                     "camera rays hit as their view has it")
     cost = _interval(k.cost_samples(steps, tests, subgrids, plan_bytes, visits) + k.samples["t_hit"] * hits)
     predicted = dict(ns_per_ray=cost if k.units == "ns" else None, steps_per_ray=steps, tests_per_ray=tests,
                      subgrids_per_ray=subgrids, visits_per_ray=visits, hits_per_ray=hits)
@@ -1094,7 +1100,7 @@ def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analyt
         predicted["model_cost_per_ray"] = k.cost(steps, tests, subgrids, plan_bytes, visits) + k.t_hit * hits
     else:
         predicted["model_cost_per_ray"] = None
-    base, base_detail = _baseline_table(stats, k, terms)
+    base, base_detail = _baseline_table(stats, k, terms, hits)
     out = dict(scene=scene.name, triangles=int(stats.n_triangles), scene_class=cls, scene_class_reason=cls_reason,
                fidelity=fidelity, units=k.units, rays=rays, mailbox=mailbox,
                constants=dict(t_setup=k.t_setup, t_step=k.t_step, t_int=k.t_int, t_sub=k.t_sub, ratio=k.ratio,

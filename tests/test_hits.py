@@ -137,6 +137,9 @@ def test_predict_adds_t_hit_for_the_share_of_lines_that_hit():
     assert q1["ns_per_ray"]["median"] == pytest.approx(q0["ns_per_ray"]["median"] + 40.0 * share, rel=1e-9)
     assert q1["model_cost_per_ray"] == pytest.approx(q0["model_cost_per_ray"] + 40.0 * share, rel=1e-9)
     assert p1["levels"] == p0["levels"]  # the same at every resolution: no plan moves
+    for name, d in p1["baselines_detail"].items():  # the baselines priced with the same terms
+        if d.get("cost_per_ray") is not None:
+            assert d["cost_per_ray"] == pytest.approx(p0["baselines_detail"][name]["cost_per_ray"] + 40.0 * share)
     assert p1["constants"]["t_hit"] == 40.0
     assert resolve_constants(constants=hit).t_hit == 40.0 and resolve_constants(constants=plain).t_hit == 0.0
     # the talk's model (paper fidelity) has no hit cost
