@@ -86,6 +86,17 @@ def assert_planted_recovered(result, truth: dict, names, rel: float = 0.05) -> N
         assert c["ci95"][0] <= truth[name] <= c["ci95"][1], name
 
 
+def planted_calibration(recs: list[dict], priors: dict):
+    """The in-context fit of synthetic records (every optional count they carry, each kept when
+    the timings call for it) and a calibration made from it: (FitResult, calibration dict)."""
+    from calibrate import calfile
+
+    design = calfile.design_from_measurements(recs, "in_context", optional=calfile.OPTIONAL_COUNT_FIELDS)
+    result = calfile.fit_in_context(design, seed=0, priors=priors)
+    cal = calfile.from_fit(result, fingerprint={"cpu_model": "Test CPU"}, measurements=recs, meta={})
+    return result, cal
+
+
 def exported_header(cal: dict, tmp_path: Path, condition: str) -> str:
     """Export ``cal``'s header into ``tmp_path``, check that a C99 program including it
     (-Wall -Wextra -Werror -pedantic) finds ``condition`` true, and return the header's text."""

@@ -22,7 +22,7 @@ from calibrate import run as R
 from calibrate._grid import Grid, Scene
 from calibrate.predict import predict, resolve_constants, scene_statistics
 from calibrate.suites import _config, _rays
-from conftest import assert_planted_recovered, exported_header, planted_counts
+from conftest import assert_planted_recovered, exported_header, planted_calibration, planted_counts
 from models.effects import termination_fraction
 
 RAYS = 2048
@@ -63,9 +63,7 @@ def _design(recs):
 @pytest.fixture(scope="module")
 def planted():
     recs = _records(0)
-    result = calfile.fit_in_context(_design(recs), seed=0, priors=PRIORS)
-    cal = calfile.from_fit(result, fingerprint={"cpu_model": "Test CPU"}, measurements=recs, meta={})
-    return recs, result, cal
+    return (recs, *planted_calibration(recs, PRIORS))
 
 
 def test_the_fit_recovers_a_planted_t_hit(planted):

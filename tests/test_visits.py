@@ -25,7 +25,7 @@ from calibrate.predict import predict, resolve_constants
 from calibrate.rays import isotropic
 from calibrate.scenes import scattered_compact
 from calibrate.suites import empty_grid, resolution_for_cells
-from conftest import assert_planted_recovered, exported_header, planted_counts
+from conftest import assert_planted_recovered, exported_header, planted_calibration, planted_counts
 from models.effects import termination_fraction
 from models.general import (VISITS_SURFACE, Terms, occupied_cells, predict_uniform, terminated_visits,
                             visits_per_ray)
@@ -208,9 +208,7 @@ def test_a_calibration_takes_visits_unless_told_to_leave_them_out():
 @pytest.fixture(scope="module")
 def planted():
     recs = _records(0)
-    result = calfile.fit_in_context(_design(recs), seed=0, priors=PRIORS)
-    cal = calfile.from_fit(result, fingerprint={"cpu_model": "Test CPU"}, measurements=recs, meta={})
-    return recs, result, cal
+    return (recs, *planted_calibration(recs, PRIORS))
 
 
 def test_the_fit_recovers_a_planted_t_visit(planted):

@@ -41,6 +41,20 @@ def _ci(r):
     return f" [{100 * ci[0]:+.1f}, {100 * ci[1]:+.1f}]" if ci else ""
 
 
+def scene_names(meshes: Path, only=(), skip=()) -> list[str]:
+    """The built-in scenes, then the meshes in ``meshes`` (said when the folder is absent), less
+    those ``skip`` names, only those ``only`` names when it names any (file names or paths)."""
+    names = list(builtin_names())
+    if meshes.is_dir():
+        names += sorted(str(p) for p in meshes.iterdir() if p.suffix.lower() in MESH_SUFFIXES)
+    else:
+        print(f"real meshes absent ({meshes}); built-in scenes only")
+    names = [n for n in names if Path(n).name not in skip and n not in skip]
+    if only:
+        names = [n for n in names if Path(n).name in only or n in only]
+    return names
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     src = ap.add_mutually_exclusive_group()
@@ -73,15 +87,7 @@ def main() -> None:
         k = resolve_constants(**source)
     else:
         source = dict(ratio=args.ratio)
-    names = list(builtin_names())
-    meshes = Path(args.meshes)
-    if meshes.is_dir():
-        names += sorted(str(p) for p in meshes.iterdir() if p.suffix.lower() in MESH_SUFFIXES)
-    else:
-        print(f"real meshes absent ({meshes}); built-in scenes only")
-    names = [n for n in names if Path(n).name not in args.skip and n not in args.skip]
-    if args.only:
-        names = [n for n in names if Path(n).name in args.only or n in args.only]
+    names = scene_names(Path(args.meshes), only=args.only, skip=args.skip)
     fit = "" if "ratio" in source else f" ({source['constants'].get('fitted_on', 'pooled')} fit, r = {k.ratio:.3f})"
     print(f"source: {source if 'ratio' in source else args.calibration}{fit}; {args.ray_set} rays; "
           f"levels {args.levels}; fidelity "

@@ -38,12 +38,10 @@ from calibrate import Scene
 from calibrate import predict as P
 from calibrate._grid import Grid
 from calibrate.rays import isotropic
-from calibrate.scenes import builtin_names
+from compare_all import MESHES, scene_names  # this folder: the scripts run as files
 from models.effects import select_effects
 from models.general import occupied_cells
 
-MESHES = Path(__file__).resolve().parents[3] / "shared" / "meshes"
-MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off")
 RAY_SEED = 1
 
 
@@ -110,14 +108,7 @@ def main() -> None:
                                        rays=args.ray_set)
     else:
         source = dict(ratio=args.ratio)
-    names = list(builtin_names())
-    meshes = Path(args.meshes)
-    if meshes.is_dir():
-        names += sorted(str(p) for p in meshes.iterdir() if p.suffix.lower() in MESH_SUFFIXES)
-    else:
-        print(f"real meshes absent ({meshes}); built-in scenes only")
-    if args.only:
-        names = [n for n in names if Path(n).name in args.only or n in args.only]
+    names = scene_names(Path(args.meshes), only=args.only)
     print(f"constants: {args.calibration or f'r = {args.ratio}'}; {args.rays} isotropic rays a grid; "
           f"scales {' '.join(f'{s:g}' for s in args.scales)} of the planned L1 resolution")
     print(f"{'scene':24s} {'scale':>5s} {'resolution':>12s}  {'steps':>6s} {'tests':>6s} {'visits':>6s}  "
