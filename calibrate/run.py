@@ -83,8 +83,8 @@ MIN_BUDGET_S = FIT_RESERVE_S + 4.0
 #: n^3 cells; in-context fits put it at 2-4x the isolated value, and a prior of 0.3 held
 #: it down (held-back error of isotropic rays 21% with 0.3, 14.5% with 0.7 on the same
 #: measurements; docs/calibration.md).
-#: Hit: 0.5; the one-cell suite's aimed rays (every one hits) cost 26-30 ns more than its
-#: missing ones in three runs, the in-context fits without a prior put T_hit at 35-78 ns,
+#: Hit: 0.5; the one-cell suite's aimed rays (every one hits) cost 25-30 ns more than its
+#: missing ones in six runs, the in-context fits without a prior put T_hit at 35-78 ns,
 #: and without one it trades against T_setup (a scene's hits are a fixed share of its
 #: rays): the pooled chain ran 4,574 steps instead of 1,326 (docs/calibration.md, "A cost
 #: per hit").
