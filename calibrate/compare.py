@@ -36,7 +36,7 @@ import numpy as np
 
 from . import predict as _predict
 from . import sweep as _sweep
-from ._grid import Grid, Scene
+from ._grid import Scene
 from ._io import UserError, atomic_write_bytes, check_writable
 from .protocol import median_mad
 from .sweep import GridSpec
@@ -213,11 +213,9 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
     extrapolated = _predict.extrapolation_note(k, pred["memory_bytes"])
     if extrapolated:
         notes.append(extrapolated)
-    # the share of the sweep's own rays that hit, priced at T_hit (the same for every grid)
-    hits = 0.0
-    if k.t_hit > 0:
-        t_first, _ = Grid.uniform(scene, _predict.termination_grid_resolution(scene)).intersect(o, d)
-        hits = float(np.count_nonzero(np.isfinite(t_first))) / float(len(t_first))
+    # the share of the sweep's own rays that hit (the same first hits in every grid; the
+    # predicted grid's count), priced at T_hit
+    hits = float(measured[index[chosen]]["hits"]) if k.t_hit > 0 else 0.0
     curves, all_points = [], []
     for L, specs in curve_specs.items():
         pts = []
@@ -230,8 +228,7 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
                      values=len(m.get("values_ns") or []))
             if "median_ns" in m:
                 steps, tests, subs, visits, source = _model_counts(stats, terms, spec, m)
-                band = (k.cost_samples(steps, tests, subs, float(m.get("memory_bytes") or 0.0), visits)
-                        + k.samples["t_hit"] * hits)
+                band = k.cost_samples(steps, tests, subs, float(m.get("memory_bytes") or 0.0), visits, hits)
                 p["predicted"] = dict(median=float(np.median(band)), ci95=[float(np.percentile(band, 2.5)),
                                                                          float(np.percentile(band, 97.5))],
                                       counts=source)

@@ -213,21 +213,24 @@ class Constants:
         """The occupied-cell term is in the cost (a calibration fitted T_visit)."""
         return self.t_visit > 0
 
-    def cost_samples(self, steps, tests, subgrids=0.0, memory_bytes=0.0, visits=0.0) -> np.ndarray:
-        """(S,) predicted cost per ray for fixed counts (grid bytes, occupied cells entered), one
-        per posterior sample."""
+    def cost_samples(self, steps, tests, subgrids=0.0, memory_bytes=0.0, visits=0.0, hits=0.0) -> np.ndarray:
+        """(S,) predicted cost per ray for fixed counts (grid bytes, occupied cells entered, the
+        share of rays that hit), one per posterior sample."""
         s = self.samples
         out = s["t_setup"] + s["t_step"] * steps + s["t_int"] * tests + s["t_sub"] * subgrids
         if visits > 0:
             out = out + s["t_visit"] * visits
+        if hits > 0:
+            out = out + s["t_hit"] * hits
         lines = self.lines(steps, tests, memory_bytes)
         return out + s["t_mem"] * lines if lines > 0 else out
 
-    def cost(self, steps, tests, subgrids=0.0, memory_bytes=0.0, visits=0.0) -> float:
+    def cost(self, steps, tests, subgrids=0.0, memory_bytes=0.0, visits=0.0, hits=0.0) -> float:
         """Predicted cost per ray under the median constants (the memory term needs the grid's
-        bytes, the occupied-cell term the occupied cells a ray enters)."""
+        bytes, the occupied-cell term the occupied cells a ray enters, the hit term the share of
+        rays that hit)."""
         return (self.t_setup + self.t_step * steps + self.t_int * tests + self.t_sub * subgrids
-                + self.t_mem * self.lines(steps, tests, memory_bytes) + self.t_visit * visits)
+                + self.t_mem * self.lines(steps, tests, memory_bytes) + self.t_visit * visits + self.t_hit * hits)
 
 
 def _median_of(value, name):
@@ -998,7 +1001,7 @@ def _baseline_table(stats, k: Constants, terms, hits: float = 0.0):
         if len(levels) == 1:
             steps, tests, _, mem, visits = _uniform_counts(stats, levels[0], k, terms)
             d.update(steps_per_ray=steps, tests_per_ray=tests,
-                     cost_per_ray=k.cost(steps, tests, 0.0, mem, visits) + k.t_hit * hits)
+                     cost_per_ray=k.cost(steps, tests, 0.0, mem, visits, hits))
         detail[name] = d
     return out, detail
 
@@ -1065,7 +1068,7 @@ def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analyt
     if hits and rays == "camera":
         notes.append(f"hits: T_hit is priced for the share of isotropic lines that hit the mesh ({hits:.3g}); "
                      "camera rays hit as their view has it")
-    cost = _interval(k.cost_samples(steps, tests, subgrids, plan_bytes, visits) + k.samples["t_hit"] * hits)
+    cost = _interval(k.cost_samples(steps, tests, subgrids, plan_bytes, visits, hits))
     predicted = dict(ns_per_ray=cost if k.units == "ns" else None, steps_per_ray=steps, tests_per_ray=tests,
                      subgrids_per_ray=subgrids, visits_per_ray=visits, hits_per_ray=hits)
     if k.has_memory and fidelity != "paper":
@@ -1093,11 +1096,11 @@ def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analyt
         res1 = plan["levels"][0]["resolution"]
         _, m_steps, m_tests = predict_uniform(stats, res1, 0.0, 1.0, 1.0, overlap="exact", terms=terms)
         predicted["model_cost_per_ray"] = k.cost(m_steps, m_tests, 0.0, plan_bytes,
-                                                 visits_per_ray(stats, res1, terms=terms)) + k.t_hit * hits
+                                                 visits_per_ray(stats, res1, terms=terms), hits)
     elif "counts" in plan:
         # the model's counts, also for a simulated plan (whose steps and tests are the kernel's)
         steps, tests, subgrids, visits = _terminated_nested(plan["counts"], stats, terms.traversed_fraction)
-        predicted["model_cost_per_ray"] = k.cost(steps, tests, subgrids, plan_bytes, visits) + k.t_hit * hits
+        predicted["model_cost_per_ray"] = k.cost(steps, tests, subgrids, plan_bytes, visits, hits)
     else:
         predicted["model_cost_per_ray"] = None
     base, base_detail = _baseline_table(stats, k, terms, hits)

@@ -107,15 +107,14 @@ def _config(name, kind, suite, scene_name, res_label, intersector, grid: Grid, o
             copies=()) -> Config:
     """The configuration of ``grid`` on rays (o, d); ``copies``: more builds of the same grid,
     timed in turn with it (:class:`calibrate.protocol.Copies`)."""
-    steps, tests, subgrids, visits = grid.count(o, d, visits=True)
-    hits = int(np.count_nonzero(np.isfinite(grid.intersect(o, d)[0])))
+    t, _, steps, tests, subgrids, visits = grid.count(o, d, hits=True, visits=True)  # one walk
     runs = [g.timed_batch(o, d, clock=TIMING_CLOCK) for g in (grid, *copies)]
     return Config(name=name, kind=kind, suite=suite, scene=scene_name, resolution=res_label,
                   intersector=intersector, rays=int(o.shape[0]), steps=int(steps.sum(dtype=np.int64)),
                   tests=int(tests.sum(dtype=np.int64)), subgrids=int(subgrids.sum(dtype=np.int64)),
                   run=runs[0] if len(runs) == 1 else Copies(runs), ray_set=ray_set,
                   memory_bytes=int(grid.info["memory_bytes"]), visits=int(visits.sum(dtype=np.int64)),
-                  hits=hits)
+                  hits=int(np.count_nonzero(np.isfinite(t))))
 
 
 def isolated_configs(intersector: str, seed: int = 0) -> list[Config]:

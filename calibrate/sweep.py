@@ -259,10 +259,10 @@ def _as_grid(scene, spec_or_grid, mailbox=False):
 
 
 def _counts(grid: Grid, origins, directions) -> dict:
-    steps, tests, subgrids, visits = grid.count(origins, directions, visits=True)
+    t, _, steps, tests, subgrids, visits = grid.count(origins, directions, hits=True, visits=True)
     info = grid.info
     return dict(steps=float(steps.mean()), tests=float(tests.mean()), subgrids=float(subgrids.mean()),
-                visits=float(visits.mean()),
+                visits=float(visits.mean()), hits=float(np.isfinite(t).mean()),
                 cells=int(info["n_cells"]), references=int(info["n_refs"]),
                 memory_bytes=int(info["memory_bytes"]))
 
@@ -290,8 +290,9 @@ def measure_time_per_ray(scene: Scene, spec_or_grid, origins, directions, *, rou
     timed as it is), each value primed and lasting at least ``min_time`` seconds, one
     warm-up discarded; ``clock`` "thread" (default: the timing thread's CPU time) or
     "wall" (the kernel's own monotonic clock)), ``values_ns`` (per ray), ``steps``,
-    ``tests``, ``subgrids`` (mean per ray, from the instrumented twin on the same rays),
-    ``cells``, ``references``, ``memory_bytes``, ``builds``.
+    ``tests``, ``subgrids``, ``visits`` (mean per ray, from the instrumented twin on the same
+    rays), ``hits`` (the share of the rays that hit), ``cells``, ``references``,
+    ``memory_bytes``, ``builds``.
     """
     return sweep(scene, [spec_or_grid], (origins, directions), rounds=rounds, builds=builds, min_time=min_time,
                  seed=seed, mailbox=mailbox, clock=clock)[0]
