@@ -53,6 +53,11 @@ MAX_SUBDIVIDE_THRESHOLD = 2**32 - 2
 MAX_AXIS_CELLS = 2**31 - 1
 #: Largest memory limit (bytes) and loop count: both must fit a signed 64-bit integer.
 MAX_INT64 = 2**63 - 1
+#: Rays a primed value traces, untimed, before it (``prime`` of :meth:`Grid.timed_batch`'s callable,
+#: which :func:`calibrate.protocol.measure` calls): the first of its batch.  They warm what a
+#: stream of such rays keeps cached (the grid's cells near the box, the triangles rays meet
+#: most) without tracing a long batch twice for every value.
+PRIME_RAYS = 2048
 #: Resolution axes up to this many cells print in full in messages; larger ones as 3 significant digits.
 MAX_PRINTED_AXIS_DIGITS = 12
 
@@ -660,6 +665,9 @@ class Grid:
     def timed_batch(self, origins, directions, clock: str = "wall"):
         """A ``run(loops) -> (elapsed_ns, checksum)`` callable for :func:`calibrate.protocol.measure`.
 
+        Its ``prime()`` traces the batch's first :data:`PRIME_RAYS` rays once, untimed
+        (what :func:`calibrate.protocol.measure` calls before each value when priming).
+
         clock : ``"wall"``, the kernel's own monotonic clock around its loop, or
             ``"thread"``, the calling thread's CPU time around the same loop (the
             kernel runs in the calling thread): a value then leaves out the time the
@@ -673,7 +681,13 @@ class Grid:
         def run(loops: int):
             return _kernels.bench(cap, o, d, _whole_number(loops, "loops", 1, MAX_INT64, "2^63 - 1"))
 
+        po, pd = np.ascontiguousarray(o[:PRIME_RAYS]), np.ascontiguousarray(d[:PRIME_RAYS])
+
+        def prime():
+            _kernels.bench(cap, po, pd, 1)
+
         if clock == "wall":
+            run.prime = prime
             return run
         read = time.thread_time_ns
 
@@ -682,6 +696,7 @@ class Grid:
             _, checksum = run(loops)
             return read() - t0, checksum
 
+        run_thread.prime = prime
         return run_thread
 
 

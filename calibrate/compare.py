@@ -46,8 +46,10 @@ DEFAULT_POINTS = 13
 MIN_POINTS = 3
 MAX_POINTS = 64
 SWEEP_SPAN = 4.0
-#: Rays per batch and their seed (the same rays for every grid of a scene).
-DEFAULT_RAY_COUNT = 4096
+#: Rays per batch and their seed (the same rays for every grid of a scene): as many distinct rays
+#: as the calibration's in-context batches (calibrate.suites.CONTEXT_RAYS_PER_BATCH), whose
+#: comment says why a short batch traced again and again times a grid too fast.
+DEFAULT_RAY_COUNT = 16384
 #: Most rays per batch on the command line: a batch's rays and hits (64 bytes a ray) stay in memory.
 MAX_RAY_COUNT = 2**24
 RAY_SEED = 1

@@ -374,6 +374,15 @@ class Copies:
     def __call__(self, loops: int):
         return self.runs[self.current](loops)
 
+    def prime(self) -> None:
+        """Prime the current copy: its own ``prime()`` when it has one, else one untimed loop."""
+        run = self.runs[self.current]
+        primer = getattr(run, "prime", None)
+        if primer is not None:
+            primer()
+        else:
+            run(1)
+
 
 # ---------------------------------------------------------------------------
 # timer
@@ -646,7 +655,9 @@ def measure(
     prime : call a configuration once (one loop, untimed) before each of its values,
         so that a value starts from the caches as the configuration's own calls leave
         them, not as the configuration timed before it left them (interleaving makes
-        every value's first loop cold otherwise).
+        every value's first loop cold otherwise).  A run callable with a ``prime()``
+        method has that called instead (:meth:`calibrate.Grid.timed_batch`'s traces the
+        first rays of its batch: a long batch of distinct rays is not traced twice).
     stamp : the clock whose reading after each value goes into ``Measurement.stamps_s``
         (seconds; the wall clock by default, so that the values of a resumed run, in
         another process, are placed in time with the earlier ones).
@@ -720,7 +731,11 @@ def measure(
             if advance is not None:
                 advance()
             if prime:
-                _call(name, configs[name], 1)
+                primer = getattr(configs[name], "prime", None)
+                if primer is not None:
+                    primer()
+                else:
+                    _call(name, configs[name], 1)
             elapsed_ns = _call(name, configs[name], m.loops)
             sink.append(elapsed_ns / m.loops)
             if stamps is not None:

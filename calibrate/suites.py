@@ -35,8 +35,17 @@ from .scenes import scattered_compact
 #: On a shared host that wait is most of the noise; the cost of the work itself
 #: (cache and memory stalls included) is what the constants describe.
 TIMING_CLOCK = "thread"
-#: Rays per batch in every configuration.
+#: Rays per batch in the isolating suites, whose grids and triangles stay in cache by design.
 RAYS_PER_BATCH = 2048
+#: Distinct rays per batch in the in-context suite.  A value traces its batch again and again
+#: (as many loops as last ``calibrate.run.MIN_VALUE_NS``), so a short batch keeps what its own
+#: rays touch cached from one loop to the next, which no stream of new rays does: on this
+#: project's 2-core EPYC host (1 MiB L2, 32 MiB L3) the same grid took 202 ns a ray with 2,048
+#: rays and 243-245 with 16,384-65,536 (`cylinder1996` 19x19x93, 8.7 MiB), 301 against 356-357
+#: (the sphere at 55x54x55, 10 MiB), 1,135 against 1,325-1,340 (`cylinder19996` at 43x43x214,
+#: 187 MiB).  At 16,384 the batch's footprint is well past that L3 and the time per ray is the
+#: stream's; ``compare``'s and ``bench``'s batches are as long.
+CONTEXT_RAYS_PER_BATCH = 16384
 #: Empty-grid resolutions (cells per axis) of the isolating step suite; at most 40^3
 #: cells (500 KiB, a quarter of this host's level-2 cache), so the cells stay in cache
 #: and T_step is the step itself (48^3 already costs 4% more a step here).  The
@@ -172,17 +181,18 @@ def hits_box(o: np.ndarray, d: np.ndarray, lo, hi) -> np.ndarray:
 
 
 def _rays(scene: Scene, ray_set: str, seed: int):
-    """A batch of rays that all enter the grid, as the cost model assumes.
+    """A batch of :data:`CONTEXT_RAYS_PER_BATCH` rays that all enter the grid, as the cost model assumes.
 
     Isotropic lines through the box all do by construction; a camera framing
     the box's bounding sphere also sees past an elongated box, so its rays are
     drawn in surplus and those missing the box are dropped."""
+    n = CONTEXT_RAYS_PER_BATCH
     if ray_set == "isotropic":
-        return isotropic(scene.box_lo, scene.box_hi, RAYS_PER_BATCH, seed)
+        return isotropic(scene.box_lo, scene.box_hi, n, seed)
     if ray_set == "camera":
-        o, d = camera(scene.box_lo, scene.box_hi, CAMERA_SURPLUS * RAYS_PER_BATCH, seed)
+        o, d = camera(scene.box_lo, scene.box_hi, CAMERA_SURPLUS * n, seed)
         keep = hits_box(o, d, scene.box_lo, scene.box_hi)
-        return o[keep][:RAYS_PER_BATCH], d[keep][:RAYS_PER_BATCH]
+        return o[keep][:n], d[keep][:n]
     raise ValueError(f"unknown ray set {ray_set!r}")
 
 

@@ -176,6 +176,38 @@ def test_copies_take_the_values_in_turn(i):
         assert pair == [(f"copy{v % 3}", 1), (f"copy{v % 3}", loops)], (v, pair)
 
 
+class PrimedRun(FakeRun):
+    """A FakeRun with its own ``prime()`` (a short untimed call, as Grid.timed_batch's), logged as
+    (name, "prime")."""
+
+    def prime(self):
+        self.log.append((self.name, "prime"))
+
+
+@pytest.mark.parametrize("i", range(3))
+def test_a_run_with_its_own_prime_is_primed_by_it(i):
+    """measure(prime=True) calls a run callable's prime() before each warm-up and value instead
+    of one loop of the whole batch; Copies primes its current copy the same way, and a copy
+    without prime() by one loop."""
+    rng = np.random.default_rng(1190 + i)
+    log = []
+    runs = {"a": PrimedRun("a", float(rng.uniform(500.0, 5_000.0)), log=log),
+            "b": Copies([PrimedRun("b0", 900.0, log=log), FakeRun("b1", 950.0, log=log)])}
+    rounds = 4
+    out = measure(runs, rng=np.random.default_rng(1200 + i), rounds=rounds, warmups=1,
+                  min_value_ns=MIN_VALUE_NS, timer_resolution_ns=RES_NS, prime=True)
+    assert len(out["a"].values_ns) == rounds
+    calls_a = [c for n, c in log if n == "a"]
+    after_calibration = calls_a[calls_a.index("prime"):]
+    assert after_calibration == ["prime", out["a"].loops] * (rounds + 1)  # the warm-up and each value
+    # copy b0 (warm-up, then values 2 and 4) primes itself; b1 (values 1 and 3) by one loop
+    b = [(n, c) for n, c in log if n.startswith("b")]
+    b_after = b[[k for k, e in enumerate(b) if e[1] == "prime"][0]:]
+    loops = out["b"].loops
+    assert b_after == [("b0", "prime"), ("b0", loops), ("b1", 1), ("b1", loops)] * 2 + [("b0", "prime"),
+                                                                                       ("b0", loops)]
+
+
 def test_copies_needs_run_callables():
     with pytest.raises(ValueError, match="at least one run callable"):
         Copies([])

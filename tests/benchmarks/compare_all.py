@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 from calibrate import Scene
-from calibrate.compare import DEFAULT_POINTS, REFINE_ROUNDS, compare_scene, plot, summarise
+from calibrate.compare import DEFAULT_POINTS, DEFAULT_RAY_COUNT, REFINE_ROUNDS, compare_scene, plot, summarise
 from calibrate.sweep import SWEEP_BUILDS, SWEEP_ROUNDS
 from calibrate.predict import constants_from_args, resolve_constants
 from calibrate.scenes import builtin_names
@@ -64,11 +64,14 @@ def main() -> None:
     ap.add_argument("--levels", default="auto")
     ap.add_argument("--fidelity", default="analytic")
     ap.add_argument("--points", type=int, default=DEFAULT_POINTS)
-    ap.add_argument("--rays", type=int, default=4096, help="rays per batch")
+    ap.add_argument("--rays", type=int, default=DEFAULT_RAY_COUNT,
+                    help=f"rays per batch (default {DEFAULT_RAY_COUNT}, compare's own)")
     ap.add_argument("--ray-set", default="isotropic", choices=("isotropic", "camera"),
                     help="the rays traced; the calibration's fit of that set alone when it has one")
     ap.add_argument("--big", type=int, default=50_000, help="triangles above which --big-rays is used")
-    ap.add_argument("--big-rays", type=int, default=2048)
+    ap.add_argument("--big-rays", type=int, default=DEFAULT_RAY_COUNT,
+                    help="rays per batch of the scenes above --big triangles (default the same: fewer rays, "
+                         "traced again and again, keep their grid's lines cached and time it too fast)")
     ap.add_argument("--rounds", type=int, default=SWEEP_ROUNDS, help="timed values per grid")
     ap.add_argument("--builds", type=int, default=SWEEP_BUILDS, help="builds of every grid the values are spread over")
     ap.add_argument("--no-prime", action="store_true", help="no untimed call before each value")
