@@ -878,12 +878,18 @@ def log_posterior_gain(design: Mapping, column: str, seed: int = 0, *,
     """
     if column not in design:
         raise ValueError(f"design has no column {column!r}")
+    best = max_log_posterior(design, seed, required=required, priors=priors)
+    return best - max_log_posterior({k: v for k, v in design.items() if k != column}, seed, required=required,
+                                    priors=priors)
 
-    def best(d):
-        consts, value = maximum_a_posteriori(d, seed, required=required, priors=priors)
-        return value - sum(math.log(v) for name, v in consts.items() if name in FLAT_PRIOR_NAMES)
 
-    return best(design) - best({k: v for k, v in design.items() if k != column})
+def max_log_posterior(design: Mapping, seed: int = 0, *, required: Sequence[str] = REQUIRED_COUNT_KEYS,
+                      priors: Mapping | None = None) -> float:
+    """The maximum of the log posterior (:func:`maximum_a_posteriori`) without the ``log T`` of
+    the flat priors (``FLAT_PRIOR_NAMES``): a log-likelihood (plus the informative priors) that
+    designs with the same terms and values can be compared by."""
+    consts, value = maximum_a_posteriori(design, seed, required=required, priors=priors)
+    return value - sum(math.log(v) for name, v in consts.items() if name in FLAT_PRIOR_NAMES)
 
 
 def predict_batch_times(samples: np.ndarray, names: Sequence[str], design: Mapping) -> np.ndarray:

@@ -30,9 +30,11 @@ CACHE_DIR = Path("/sys/devices/system/cpu/cpu0/cache")
 #: Transparent huge pages: the kernels ask for them on a grid's arrays of 2 MiB and more
 #: (kernels/bigmem.c), which the OS grants in mode "always" or "madvise".
 THP_PATH = Path("/sys/kernel/mm/transparent_hugepage/enabled")
-#: The cache level the memory effect is measured against (models/memory.py): the
-#: per-core level-2 cache, which a traversal's cells and triangles spill out of first.
+#: The smallest cache size ``calibrate run`` tries for the memory effect's C (models/memory.py):
+#: the per-core level-2 cache, which a traversal's cells and triangles spill out of first.
 CACHE_LEVEL = 2
+#: The last-level cache: the largest size ``calibrate run`` tries for the memory effect's C.
+LAST_CACHE_LEVEL = 3
 #: Assumed when the operating system does not say (1 MiB: the smallest per-core
 #: level-2 cache of current x86-64 and arm64 server cores); stored as assumed.
 DEFAULT_CACHE_BYTES = 1 << 20
@@ -147,6 +149,12 @@ def cache_bytes(level: int = CACHE_LEVEL, cache_dir: Path | None = None) -> tupl
         if size is not None:
             return size, str(entry / "size")
     return DEFAULT_CACHE_BYTES, "assumed"
+
+
+def last_cache_bytes(cache_dir: Path | None = None) -> int | None:
+    """Bytes of CPU 0's level-3 (last-level) data or unified cache, or None when the OS does not say."""
+    size, source = cache_bytes(LAST_CACHE_LEVEL, cache_dir)
+    return None if source == "assumed" else size
 
 
 def fingerprint(extra: dict | None = None) -> dict:

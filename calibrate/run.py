@@ -28,8 +28,8 @@ from . import calfile, suites
 from . import fit as _fit
 from ._io import UserError, atomic_write_text, check_writable
 from ._grid import intersector_code
-from models.memory import lines_beyond_cache
-from .host import cache_bytes, fingerprint
+from models.memory import candidate_cache_sizes, lines_beyond_cache
+from .host import cache_bytes, fingerprint, last_cache_bytes
 from .protocol import REL_SPREAD_WARN, Measurement, MeasurementInterrupted, measure, pin_to_one_core
 
 #: Default wall-clock budget of a run, seconds.
@@ -205,6 +205,39 @@ def records(configs, timings: dict, held: set, cache_size: int | None = None) ->
         rec["held_back"] = c.name in held
         out.append(rec)
     return calfile.apply_drift(out)
+
+
+def with_cache(recs, cache_size: int) -> list:
+    """The records with every in-context one's ``misses`` counted against ``cache_size`` bytes."""
+    return [dict(r, misses=float(lines_beyond_cache(r["steps"], r["tests"], r["memory_bytes"], cache_size)))
+            if r["kind"] == "in_context" else r for r in recs]
+
+
+def select_cache(recs, candidates, seed: int = 0, priors=None) -> tuple[int, dict]:
+    """(bytes, {bytes: score}): the cache size C among ``candidates`` whose memory term fits the
+    in-context timings best (models/memory.py: which cache a traversal runs out of differs by host).
+
+    A candidate's score is the sum over ray sets of the maximum log posterior
+    (:func:`calibrate.fit.max_log_posterior`) of that set's fitted configurations (held-back
+    ones are not looked at) with every term the design carries and ``misses`` counted against
+    C: the same terms and values for every candidate, so the scores compare as log-likelihoods.
+    A candidate whose fit fails scores -inf; ties go to the smaller cache.
+    """
+    ctx = [r for r in recs if r["kind"] == "in_context" and r["values_ns"] and not r.get("held_back")]
+    sets = sorted({r.get("ray_set") for r in ctx}, key=str)
+    scores = {}
+    for c in candidates:
+        total = 0.0
+        for name in sets:
+            group = with_cache([r for r in ctx if r.get("ray_set") == name], c)
+            try:
+                total += _fit.max_log_posterior(calfile.design_from_measurements(group, "in_context"), seed,
+                                                priors=priors)
+            except (ValueError, _fit.ConvergenceError):
+                total = -math.inf
+                break
+        scores[int(c)] = total
+    return max(scores, key=lambda c: (scores[c], -c)), scores
 
 
 def _priors(isolated):
@@ -551,7 +584,9 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
     deadline = t_start + budget_s
     warnings: list = []
 
-    cache, cache_source = cache_bytes()
+    cache, l2_source = cache_bytes()
+    candidates = candidate_cache_sizes(cache, last_cache_bytes())
+    cache_source, cache_scores = l2_source, None
     with pin_to_one_core() as pin:
         status("building grids and counting work with the instrumented twin")
         configs = suites.isolated_configs(intersector, seed) + suites.context_configs(intersector, seed)
@@ -561,7 +596,7 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
         rng = np.random.default_rng(seed)
         rounds = max([FIRST_ROUNDS] + [len(m.values_ns) for m in timings.values()])
         result = None
-        last_fit = None  # (stage, records, isolated, warning, result) of the last stage that fitted
+        last_fit = None  # (stage, records, isolated, warning, result, cache) of the last stage that fitted
         stage = 0
         reserve = FIT_RESERVE_S  # kept for the fits after the last stage; re-estimated by each stage
         while True:
@@ -579,6 +614,11 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
             status("fitting")
             fit_start = time.monotonic()
             isolated, iso_warning = _isolated_fit(recs, seed)
+            if len(candidates) > 1:
+                cache, cache_scores = select_cache(recs, candidates, seed, _priors(isolated))
+                recs = with_cache(recs, cache)
+                cache_source = (f"the best fit of the timings among {len(candidates)} sizes from the level-2 "
+                                f"cache ({l2_source}) to the last-level one")
             pooled_start = time.monotonic()
             try:
                 result = _fit_stage(recs, seed, isolated)
@@ -591,13 +631,13 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
                 # A later stage's data can fit worse than an earlier one's (e.g. with many repeats a
                 # small misfit makes a constant's interval reach towards 0): keep the last fit that
                 # worked, with the measurements it was made from, and say so.
-                fitted_stage, recs, isolated, iso_warning, result = last_fit
+                fitted_stage, recs, isolated, iso_warning, result, (cache, cache_scores, cache_source) = last_fit
                 n_kept = sum(len(r["values_ns"]) for r in recs)
                 n_all = sum(len(m.values_ns) for m in timings.values())
                 warnings.append(f"the last stage's fit failed ({exc}); the calibration is stage {fitted_stage}'s "
                                 f"fit and keeps the {n_kept} values it was made from (of {n_all} measured)")
                 break
-            last_fit = (stage, recs, isolated, iso_warning, result)
+            last_fit = (stage, recs, isolated, iso_warning, result, (cache, cache_scores, cache_source))
             fit_end = time.monotonic()
             reserve = fit_reserve(fit_end - fit_start, fit_end - pooled_start)
             width = _rel_width(result)
@@ -644,8 +684,11 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
                     holdout_mare_by_rays=mare_by_rays, cv_mare=None if math.isnan(cv) else cv,
                     cv_mare_by_rays=cv_by_rays, cv_folds=CV_FOLDS,
                     ratio_rel_width=_rel_width(result), pinned_core=pin.core, pin_note=pin.note,
-                    rays_per_batch=suites.RAYS_PER_BATCH, min_value_ns=MIN_VALUE_NS,
-                    cache_bytes=cache, cache_source=cache_source)
+                    rays_per_batch=suites.RAYS_PER_BATCH, context_rays_per_batch=suites.CONTEXT_RAYS_PER_BATCH,
+                    min_value_ns=MIN_VALUE_NS,
+                    cache_bytes=cache, cache_source=cache_source, cache_candidates=candidates)
+        if cache_scores is not None:
+            meta["cache_scores"] = {str(c): (v if math.isfinite(v) else None) for c, v in cache_scores.items()}
         if skipped:
             meta["by_rays_skipped"] = skipped
         from ._kernels import CFLAGS, traverse_isa

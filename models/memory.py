@@ -22,17 +22,22 @@ expected number of cache lines a ray fetches from beyond the cache:
   that a cache of C bytes cannot hold, i.e. the chance that a line touched at
   random is not cached.  0 while the grid fits.
 
-C is the host's per-core cache the traversal runs out of (the level-2 cache,
-read from the operating system at calibration time and stored with the
-calibration).  T_mem is fitted with the other constants (``calibrate run``).
-Pure math: no clocks, no kernels.
+C is the cache the traversal runs out of.  Which level that is depends on the
+host: on a Xeon whose level-3 share is small the level-2 cache (1-2 MiB); on a
+2-core EPYC virtual machine (1 MiB L2, 32 MiB L3) a dependent load costs 5 ns
+within 256 KiB, 17-35 ns from 2 to 12 MiB and 53-158 ns from 16 MiB on, and
+the in-context timings fit best with C = 8-16 MiB.  ``calibrate run`` therefore
+tries the sizes :func:`candidate_cache_sizes` gives between the host's level-2
+and last-level caches (read from the operating system) and keeps the one whose
+fit of the timings is best, stored with the calibration.  T_mem is fitted with
+the other constants.  Pure math: no clocks, no kernels.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["LINE_BYTES", "STEP_LINES", "TEST_LINES", "miss_fraction", "lines_beyond_cache"]
+__all__ = ["LINE_BYTES", "STEP_LINES", "TEST_LINES", "miss_fraction", "lines_beyond_cache", "candidate_cache_sizes"]
 
 #: Bytes of a cache line.
 LINE_BYTES = 64
@@ -68,3 +73,21 @@ def lines_beyond_cache(steps, tests, memory_bytes, cache_bytes):
     s = np.asarray(steps, dtype=np.float64)
     t = np.asarray(tests, dtype=np.float64)
     return miss_fraction(memory_bytes, cache_bytes) * (STEP_LINES * s + TEST_LINES * t)
+
+
+def candidate_cache_sizes(smallest, largest) -> list[int]:
+    """Cache sizes (bytes) to try for C: ``smallest``, each doubling of it below ``largest``,
+    and ``largest``; ``[smallest]`` when ``largest`` is None or not above it.
+
+    smallest : bytes of the level-2 cache (> 0); largest : bytes of the last-level cache, or None.
+    """
+    lo = int(smallest)
+    if lo <= 0:
+        raise ValueError(f"smallest must be > 0, got {smallest!r}")
+    if largest is None or int(largest) <= lo:
+        return [lo]
+    hi = int(largest)
+    out = [lo]
+    while out[-1] * 2 < hi:
+        out.append(out[-1] * 2)
+    return out + [hi]

@@ -23,7 +23,8 @@ from calibrate._grid import Scene
 from calibrate.predict import _uniform_counts, predict, resolve_constants, scene_statistics
 from conftest import assert_planted_recovered, exported_header, planted_counts
 from models.effects import select_effects
-from models.memory import LINE_BYTES, STEP_LINES, TEST_LINES, lines_beyond_cache, miss_fraction
+from models.memory import (LINE_BYTES, STEP_LINES, TEST_LINES, candidate_cache_sizes, lines_beyond_cache,
+                           miss_fraction)
 from models.uncertainty import discrete_posterior_optimum
 
 RAYS = 2048
@@ -94,6 +95,27 @@ def test_cache_bytes_is_assumed_when_the_system_does_not_say(tmp_path, entries):
     assert host.cache_bytes(cache_dir=tmp_path / "absent") == (host.DEFAULT_CACHE_BYTES, "assumed")
 
 
+@pytest.mark.parametrize("entries, want", [
+    ([(1, "Data", "48K"), (2, "Unified", "2048K"), (3, "Unified", "491520K")], 491520 << 10),
+    ([(2, "Unified", "1M"), (3, "Unified", "32M")], 32 << 20),
+    ([(1, "Data", "32K"), (2, "Unified", "1M")], None),
+    ([(3, "Unified", "lots")], None),
+])
+def test_last_cache_bytes_reads_the_level_three_cache_or_says_none(tmp_path, entries, want):
+    assert host.last_cache_bytes(cache_dir=_cache_dir(tmp_path, entries)) == want
+    assert host.last_cache_bytes(cache_dir=tmp_path / "absent") is None
+
+
+def test_candidate_cache_sizes_double_from_the_level_two_to_the_last_level():
+    mib = 1 << 20
+    assert candidate_cache_sizes(mib, 32 * mib) == [mib, 2 * mib, 4 * mib, 8 * mib, 16 * mib, 32 * mib]
+    assert candidate_cache_sizes(2 * mib, 480 * mib) == [2 * mib * 2 ** k for k in range(8)] + [480 * mib]
+    assert candidate_cache_sizes(mib, 3 * mib) == [mib, 2 * mib, 3 * mib]
+    assert candidate_cache_sizes(mib, None) == [mib] == candidate_cache_sizes(mib, mib // 2)
+    with pytest.raises(ValueError, match="> 0"):
+        candidate_cache_sizes(0, mib)
+
+
 def test_the_fingerprint_records_the_cache():
     fp = host.fingerprint()
     assert isinstance(fp["cache_bytes"], int) and fp["cache_bytes"] > 0 and fp["cache_source"]
@@ -101,14 +123,15 @@ def test_the_fingerprint_records_the_cache():
 
 # -- the fit ------------------------------------------------------------------------------------
 
-def _records(seed: int, truth=TRUTH, memory_scale=1.0) -> list[dict]:
-    """In-context records over grids from 0.1 to 40 MB, values from ``truth`` with 2% noise."""
+def _records(seed: int, truth=TRUTH, memory_scale=1.0, cache=CACHE) -> list[dict]:
+    """In-context records over grids from 0.1 to 40 MB, values from ``truth`` (lines beyond a
+    cache of ``cache`` bytes) with 2% noise."""
     rng = np.random.default_rng(seed)
     recs = []
     for j in range(N_CONFIGS):
         counts = planted_counts(rng, j, RAYS)
         memory = int(memory_scale * np.exp(rng.uniform(np.log(1e5), np.log(4e7))))
-        misses = float(lines_beyond_cache(counts["steps"], counts["tests"], memory, CACHE))
+        misses = float(lines_beyond_cache(counts["steps"], counts["tests"], memory, cache))
         mu = (RAYS * truth["t_setup_ns"] + counts["steps"] * truth["t_step_ns"] + counts["tests"] * truth["t_int_ns"]
               + counts["subgrids"] * truth["t_sub_ns"] + misses * truth["t_mem_ns"])
         recs.append(dict(kind="in_context", scene=f"scene{j % 5}", resolution=[j + 1] * 3, intersector="watertight",
@@ -125,6 +148,40 @@ def planted():
     cal = calfile.from_fit(result, fingerprint={"cpu_model": "Test CPU", "cache_bytes": CACHE}, measurements=recs,
                            meta={"cache_bytes": CACHE})
     return recs, result, cal
+
+
+@pytest.mark.parametrize("i, planted_cache", [(0, 1 << 20), (1, 4 << 20), (2, 8 << 20), (3, 16 << 20)])
+def test_the_run_picks_the_cache_size_planted_in_the_timings(i, planted_cache):
+    """Timings made with the memory effect beyond a cache of C bytes: among the sizes from the
+    level-2 to the last-level cache, calibrate run keeps C (the best fit), and the fit with the
+    misses counted against it recovers T_mem.  Held-back records are not looked at."""
+    from calibrate import run
+
+    truth = dict(TRUTH, t_mem_ns=12.0)
+    recs = _records(2100 + i, truth, cache=planted_cache)
+    candidates = candidate_cache_sizes(1 << 20, 32 << 20)
+    # a held-back record with absurd times must not move the choice
+    recs.append(dict(recs[0], name="held", held_back=True, values_ns=[v * 50 for v in recs[0]["values_ns"]]))
+    wrong = run.with_cache(recs, 32 << 20 if planted_cache != 32 << 20 else 1 << 20)
+    chosen, scores = run.select_cache(wrong, candidates, seed=0, priors=PRIORS)
+    assert chosen == planted_cache, {c >> 20: round(v, 1) for c, v in scores.items()}
+    assert set(scores) == set(candidates) and max(scores.values()) == scores[chosen]
+    fitted = run.with_cache(wrong, chosen)
+    result = calfile.fit_in_context(calfile.design_from_measurements(fitted, "in_context"), seed=0, priors=PRIORS)
+    assert_planted_recovered(result, truth, ("t_step_ns", "t_int_ns", "t_mem_ns"), rel=0.1)
+
+
+def test_with_cache_counts_the_misses_of_in_context_records_only():
+    from calibrate import run
+
+    recs = _records(5)[:3] + [dict(kind="isolated", suite="empty", steps=10, tests=0, memory_bytes=1 << 30)]
+    out = run.with_cache(recs, 4 << 20)
+    for r, o in zip(recs[:3], out[:3]):
+        assert o["misses"] == pytest.approx(float(lines_beyond_cache(r["steps"], r["tests"], r["memory_bytes"],
+                                                                      4 << 20)))
+    assert out[3] is recs[3] and "misses" not in out[3]
+    assert recs[0]["misses"] == pytest.approx(float(lines_beyond_cache(recs[0]["steps"], recs[0]["tests"],
+                                                                       recs[0]["memory_bytes"], CACHE)))
 
 
 def test_the_fit_recovers_a_planted_t_mem(planted):

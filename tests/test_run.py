@@ -21,6 +21,7 @@ from calibrate.protocol import Copies, MeasurementInterrupted
 @pytest.fixture
 def small_suite(monkeypatch):
     monkeypatch.setattr(suites, "RAYS_PER_BATCH", 256)
+    monkeypatch.setattr(suites, "CONTEXT_RAYS_PER_BATCH", 320)
     monkeypatch.setattr(suites, "EMPTY_GRID_SIDES", (1, 12, 16, 20, 24, 28, 32))
     monkeypatch.setattr(suites, "CELL_TRIANGLE_COUNTS", (1, 32, 64, 128))
     monkeypatch.setattr(suites, "SUBGRID_SIDES", (2, 4, 8))
@@ -94,6 +95,16 @@ def test_run_writes_a_valid_calibration(small_suite, tmp_path):
     ctx = [m for m in cal["measurements"] if m["kind"] == "in_context"]
     assert all(m["memory_bytes"] > 0 and m["misses"] >= 0 for m in ctx)
     assert cal["meta"]["cache_bytes"] > 0
+    # the cache the memory effect is counted against: one of the sizes tried, the best scored
+    tried = cal["meta"]["cache_candidates"]
+    assert cal["meta"]["cache_bytes"] in tried and tried == sorted(tried)
+    if len(tried) > 1:
+        scores = {int(k): v for k, v in cal["meta"]["cache_scores"].items() if v is not None}
+        assert max(scores, key=scores.get) == cal["meta"]["cache_bytes"]
+    # the in-context batches are long streams of distinct rays, the isolating ones short
+    assert {m["rays"] for m in ctx if m["ray_set"] == "isotropic"} == {suites.CONTEXT_RAYS_PER_BATCH}
+    assert {m["rays"] for m in cal["measurements"] if m["kind"] == "isolated"} == {suites.RAYS_PER_BATCH}
+    assert cal["meta"]["context_rays_per_batch"] == suites.CONTEXT_RAYS_PER_BATCH
     for ray_set in fitted:
         assert cal["by_rays"][ray_set]["diagnostics"]["converged"] is True
     assert not run.partial_path(out).exists(), "a finished run leaves no partial file"
