@@ -122,10 +122,11 @@ def _baseline_specs(pred: dict) -> dict:
 
 def _model_counts(stats, terms, spec: GridSpec, point: dict) -> tuple[float, float, float, float, str]:
     """(steps, tests, subgrids, occupied cells entered, source) of the predicted curve at one sweep point."""
-    from models.general import predict_uniform, visits_per_ray
+    from models.general import predict_uniform, stopped_tests_per_ray, visits_per_ray
 
     if spec.kind == "uniform":
-        _, steps, tests = predict_uniform(stats, spec.top, 0.0, 1.0, 1.0, overlap="exact", terms=terms)
+        _, steps, _ = predict_uniform(stats, spec.top, 0.0, 1.0, 1.0, overlap="exact", terms=terms)
+        tests = stopped_tests_per_ray(stats, spec.top, terms=terms)
         return steps, tests, 0.0, visits_per_ray(stats, spec.top, terms=terms), "model"
     return point["steps"], point["tests"], point["subgrids"], point.get("visits", 0.0), "kernel"
 

@@ -49,7 +49,7 @@ from models import baselines as _baselines
 from models.closed_forms import MAX_CELLS_PER_AXIS, MAX_TOTAL_CELLS, cells_to_resolution, l_level_cells
 from models.effects import EFFECT_TOLERANCE, select_effects, termination_fraction
 from models.general import (THIN_AXIS_CELLS, Terms, cell_fraction, expected_refs, predict_uniform, steps_per_ray,
-                            terminated_visits, visits_per_ray)
+                            stopped_tests_per_ray, terminated_visits, visits_per_ray)
 from models.memory import lines_beyond_cache
 from models.nested import MAX_LEVELS, TooManyPairs, clustering_change, nested_counts
 from models.portable import paper_k, paper_level_cells
@@ -566,8 +566,9 @@ def _effect_dicts(sel):
 
 def _uniform_counts(stats, res, k: Constants, terms):
     """(steps, tests, references, memory bytes, occupied cells entered) of a uniform grid under the
-    general model."""
-    _, steps, tests = predict_uniform(stats, res, k.t_setup, k.t_step, k.t_int, overlap="exact", terms=terms)
+    general model (the tests of rays that stop: :func:`models.general.stopped_tests_per_ray`)."""
+    _, steps, _ = predict_uniform(stats, res, k.t_setup, k.t_step, k.t_int, overlap="exact", terms=terms)
+    tests = stopped_tests_per_ray(stats, res, terms=terms)
     refs = expected_refs(stats, res, overlap="exact")
     return (steps, tests, refs, _memory_bytes(res[0] * res[1] * res[2], refs, 1),
             visits_per_ray(stats, res, terms=terms))
@@ -603,6 +604,25 @@ def _memory_effect(k: Constants, steps, tests, memory_bytes, what: str, subgrids
                         what)
 
 
+def _surface_tests_effect(stats, k: Constants, res, terms, steps, tests, mem, visits) -> dict | None:
+    """The entry of the tests counted in the occupied cells (:func:`models.general.stopped_tests_per_ray`)
+    at the closed form's optimum ``res``, whose cubic counts the tests by the distance; None when
+    rays never stop.  ``change``: the relative change of the predicted time the occupied cells'
+    count makes; *used* (the resolution is searched) above EFFECT_TOLERANCE."""
+    if terms.traversed_fraction >= 1.0 or terms.mailbox:
+        return None
+    _, _, by_distance = predict_uniform(stats, res, 0.0, 1.0, 1.0, overlap="exact", terms=terms)
+    cost = k.cost(steps, tests, 0.0, mem, visits)
+    change = abs(k.cost(steps, by_distance, 0.0, mem, visits) / cost - 1.0) if cost > 0 else 0.0
+    used = change > EFFECT_TOLERANCE
+    return dict(name="surface-tests", used=bool(used), change=float(change), reason=(
+        f"tests counted in the occupied cells a ray enters before it stops (models.general.stopped_tests_per_ray): "
+        f"{tests:.3g} per ray against {by_distance:.3g} by the distance it covers, {100 * change:.1f}% of the "
+        "predicted time at the closed form's optimum "
+        + ("(the resolution is the cheapest by them)" if used else
+           f"(below the {100 * EFFECT_TOLERANCE:g}% tolerance: the resolution is the closed form's)")))
+
+
 def analytic_uniform_plan(stats, k: Constants, mailbox):
     """Single-level plan of the general model with the effects :func:`models.effects.select_effects` keeps.
 
@@ -610,7 +630,9 @@ def analytic_uniform_plan(stats, k: Constants, mailbox):
     default insertion).  With a calibration's T_mem or T_visit, when the memory effect's
     term (models/memory.py) or the occupied cells' (models.general.visits_per_ray) is more
     than EFFECT_TOLERANCE of the predicted time at the optimum, the resolution is the
-    cheapest of SEARCH_SCALES around the optimum without them.  Returns (plan, effects)
+    cheapest of SEARCH_SCALES around the optimum without them; so too when the tests counted
+    in the occupied cells (:func:`models.general.stopped_tests_per_ray`) change the time at
+    the closed form's optimum, which counts them by the distance, by more than that.  Returns (plan, effects)
     like :func:`paper_plan`; plan also holds ``terms`` (the selected
     :class:`models.general.Terms`).
     """
@@ -620,7 +642,10 @@ def analytic_uniform_plan(stats, k: Constants, mailbox):
     steps, tests, refs, mem, visits = _uniform_counts(stats, res, k, sel.terms)
     effects = _effect_dicts(sel)
     candidates = None
-    if k.has_memory or k.has_visits:
+    surface = _surface_tests_effect(stats, k, res, sel.terms, steps, tests, mem, visits)
+    if surface is not None:
+        effects.append(surface)
+    if k.has_memory or k.has_visits or (surface is not None and surface["used"]):
         cands = {}
         for r in (q for sc in SEARCH_SCALES for q in _scaled_with_thin_axes(res, sc)):
             if r in cands or max(r) > MAX_CELLS_PER_AXIS or r[0] * r[1] * r[2] > MAX_TOTAL_CELLS:
@@ -637,7 +662,9 @@ def analytic_uniform_plan(stats, k: Constants, mailbox):
         if k.has_visits:
             new.append(_visits_effect(k, cost, c[4], what))
         effects.extend(new)
-        if any(e["used"] for e in new):
+        if surface is not None and surface["used"]:
+            surface["reason"] = surface["reason"][:-1] + f"; {what})"
+        if any(e["used"] for e in new) or (surface is not None and surface["used"]):
             res = best
             steps, tests, refs, mem, visits = c
             candidates = [(r, cc[1]) for r, cc in cands.items()]
@@ -1094,7 +1121,8 @@ def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analyt
     # The recommendation under the same model as the baselines (general model, selected terms).
     if len(plan["levels"]) == 1:
         res1 = plan["levels"][0]["resolution"]
-        _, m_steps, m_tests = predict_uniform(stats, res1, 0.0, 1.0, 1.0, overlap="exact", terms=terms)
+        _, m_steps, _ = predict_uniform(stats, res1, 0.0, 1.0, 1.0, overlap="exact", terms=terms)
+        m_tests = stopped_tests_per_ray(stats, res1, terms=terms)
         predicted["model_cost_per_ray"] = k.cost(m_steps, m_tests, 0.0, plan_bytes,
                                                  visits_per_ray(stats, res1, terms=terms), hits)
     elif "counts" in plan:

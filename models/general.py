@@ -240,6 +240,43 @@ def visits_per_ray(stats: SceneStats, resolution, *, terms: Terms | None = None)
     return terminated_visits(v, stats.separate_fraction, g)
 
 
+def stopped_tests_per_ray(stats: SceneStats, resolution, *, terms: Terms | None = None) -> float:
+    """Triangle tests per ray (exact overlap) when rays stop at their first hit: the smaller
+    of two counts.
+
+    - By the distance (:func:`predict_uniform`): the no-termination tests ``T0`` scaled by
+      :func:`cell_fraction`, as if a ray's tests were spread evenly along it.
+    - By the occupied cells: every test is made in an occupied cell, and by Crofton a ray
+      entering one meets ``R / occupied`` references on average (``T0 / V0``, ``V0`` the
+      occupied cells entered without termination); rays that stop keep that figure, so the
+      tests are ``T0 * visits / V0`` with ``visits`` from :func:`visits_per_ray`.  On a
+      connected surface a ray stops within its first occupied cells, where the distance
+      has it test every cell it would cross on the way out.
+
+    The smaller is taken as :func:`calibrate.predict` takes it for a two-level grid's
+    subgrids (a surface stops rays sooner than the distance does, never later).
+    APPROXIMATE: against the kernel's counts on the scans of ../shared/meshes within about
+    10% where the distance alone is 50-100% over (docs/compare.md, "Tests counted in the
+    occupied cells"); where the occupied-cell count is off (a soup of clustered triangles)
+    it is off with it.  ``terms.traversed_fraction >= 1`` (rays never stop) gives ``T0``;
+    with ``terms.mailbox``, the count by the distance (a mailbox's tests per cell are not
+    R / occupied).
+    """
+    terms = terms or Terms()
+    if terms.traversed_fraction >= 1.0 or terms.mailbox:
+        return float(predict_uniform(stats, resolution, 0.0, 1.0, 1.0, overlap="exact", terms=terms)[2])
+    c = cell_sizes(stats.extent, resolution)
+    s_c = 2.0 * float(c[0] * c[1] + c[1] * c[2] + c[2] * c[0])
+    tests0 = expected_refs(stats, resolution, overlap="exact", edge=terms.edge, area=terms.area) * s_c / stats.surface
+    g = float(cell_fraction(terms.traversed_fraction, steps_per_ray(stats.extent, resolution)))
+    by_distance = g * tests0
+    v0 = occupied_cells(stats, resolution) * s_c / stats.surface
+    if not v0 > 0.0:
+        return float(by_distance)
+    visits = terminated_visits(v0, stats.separate_fraction, g)
+    return float(min(by_distance, tests0 * visits / v0))
+
+
 def triangle_tests_per_ray(stats: SceneStats, resolution, *, mailbox=False, overlap="exact",
                   edge=True, area=True) -> float:
     """Expected triangle tests per isotropic line hitting the box (no termination).
