@@ -429,19 +429,24 @@ def sample_termination(scene: Scene, rays: int = TERMINATION_RAYS, seed: int = T
     traced through the uniform grid of :func:`termination_grid_resolution`; the fraction is
     the box chord covered before the first hit (all of it on a miss), summed over the rays,
     over the chords summed: what scales the expected steps of the count model, whose cells
-    along a line are in proportion to its length.
+    along a line are in proportion to its length.  The sample also keeps that grid's
+    occupied cells, which :func:`models.general.occupied_cells` is scaled to.
     """
     from . import rays as _rays_mod
 
     lo, hi = scene.box_lo, scene.box_hi
     o, d = _rays_mod.isotropic(lo, hi, int(rays), seed)
     t_in, t_out = _rays_mod.box_chords(o, d, lo, hi)
-    t_hit, _ = Grid.uniform(scene, termination_grid_resolution(scene)).intersect(o, d)
+    res = tuple(int(x) for x in termination_grid_resolution(scene))
+    grid = Grid.uniform(scene, res)
+    t_hit, _ = grid.intersect(o, d)
     chord = np.maximum(t_out - t_in, 0.0)
     covered = np.clip(np.minimum(t_hit, t_out) - t_in, 0.0, chord)
     total = float(chord.sum())
     fraction = min(1.0, float(covered.sum()) / total) if total > 0 else 1.0
-    return TerminationSample(fraction=fraction, p_hit=float(np.mean(np.isfinite(t_hit))), rays=int(rays))
+    occupied = res[0] * res[1] * res[2] - int(grid.info["n_empty_cells"])
+    return TerminationSample(fraction=fraction, p_hit=float(np.mean(np.isfinite(t_hit))), rays=int(rays),
+                             resolution=res, occupied=occupied)
 
 
 def _geometry(scene: Scene):

@@ -165,16 +165,42 @@ def occupied_cells(stats: SceneStats, resolution) -> float:
 
     (``f_sep`` = :attr:`models.stats.SceneStats.separate_fraction`), and spreads R_occ
     over the ``n`` cells at random (Poisson): ``occupied = n (1 - exp(-R_occ / n))``,
-    which saturates at n for coarse grids.  APPROXIMATE: measured against the kernel's
-    grids within about 15% on closed and open surfaces and on separate triangles
-    (docs/calibration.md, "Occupied cells").
+    which saturates at n for coarse grids.  With a sampled grid's occupied cells
+    (:func:`occupancy_scale`) R_occ is scaled to match them.  APPROXIMATE: measured
+    against the kernel's grids within about 15% on closed and open surfaces and on
+    separate triangles, a thin shell apart (docs/calibration.md, "Occupied cells").
     """
+    n = float(np.prod(_resolution(resolution)))
+    return float(-n * np.expm1(-occupancy_scale(stats) * _r_occ(stats, resolution) / n))
+
+
+def _r_occ(stats: SceneStats, resolution) -> float:
     c = cell_sizes(stats.extent, resolution)
     cc = np.array([c[1] * c[2], c[2] * c[0], c[0] * c[1]])
     r_occ = float(np.sum(stats.e2_axes / cc))
-    r_occ += stats.separate_fraction * (float(stats.n_triangles) + float(np.sum(stats.e1_axes / c)))
-    n = float(np.prod(_resolution(resolution)))
-    return float(-n * np.expm1(-r_occ / n))
+    return r_occ + stats.separate_fraction * (float(stats.n_triangles) + float(np.sum(stats.e1_axes / c)))
+
+
+def occupancy_scale(stats: SceneStats) -> float:
+    """The factor on R_occ that gives the occupied cells counted in the sampled grid
+    (:attr:`models.stats.TerminationSample.occupied`), 1 without one.
+
+    Solves ``n (1 - exp(-s R_occ / n)) = occupied`` at the sample's resolution.  The
+    projected area counts each sheet of a surface on its own; where two sheets lie
+    closer than a cell (a thin shell: the CAD chair's slats and legs) they share cells,
+    and the kernel's grids hold 0.46-0.49 of the model's occupied cells at every
+    resolution from 1/4 to 4 cells a triangle; elsewhere 0.75-1.17
+    (docs/compare.md, "Occupied cells sampled").  A sample grid more than half occupied
+    says little about how triangles share cells (near saturation any R_occ fits): 1.
+    """
+    ts = stats.termination
+    if ts is None or ts.resolution is None:
+        return 1.0
+    n = float(ts.resolution[0] * ts.resolution[1] * ts.resolution[2])
+    r_occ = _r_occ(stats, ts.resolution)
+    if not (0 < ts.occupied <= 0.5 * n) or not r_occ > 0.0:
+        return 1.0
+    return float(-n * np.log1p(-ts.occupied / n) / r_occ)
 
 
 def terminated_visits(visits, separate_fraction, traversed_fraction):

@@ -274,17 +274,32 @@ class TerminationSample:
         the traversed fraction of :class:`models.general.Terms`.
     p_hit : the fraction of the rays that hit.
     rays : how many were traced.
+    resolution, occupied : optional, the grid the rays were traced through (nx, ny, nz)
+        and how many of its cells hold a triangle: what
+        :func:`models.general.occupied_cells` scales its count by (both or neither).
     """
 
     fraction: float
     p_hit: float
     rays: int
+    resolution: tuple[int, int, int] | None = None
+    occupied: int | None = None
 
     def __post_init__(self):
         if not (0.0 <= self.fraction <= 1.0 and 0.0 <= self.p_hit <= 1.0):
             raise ValueError(f"fraction and p_hit must lie in [0, 1], got {self.fraction!r}, {self.p_hit!r}")
         if isinstance(self.rays, bool) or not (isinstance(self.rays, int) and self.rays >= 1):
             raise ValueError(f"rays must be a whole number >= 1, got {self.rays!r}")
+        if (self.resolution is None) != (self.occupied is None):
+            raise ValueError("resolution and occupied come together (the sample's grid and its occupied cells)")
+        if self.resolution is not None:
+            res = self.resolution
+            if not (isinstance(res, tuple) and len(res) == 3
+                    and all(isinstance(x, int) and not isinstance(x, bool) and x >= 1 for x in res)):
+                raise ValueError(f"resolution must be three whole numbers >= 1, got {res!r}")
+            occ = self.occupied
+            if isinstance(occ, bool) or not (isinstance(occ, int) and 0 <= occ <= res[0] * res[1] * res[2]):
+                raise ValueError(f"occupied must be a whole number of the grid's cells, got {occ!r}")
 
 
 @dataclass(frozen=True)
