@@ -430,7 +430,9 @@ def sample_termination(scene: Scene, rays: int = TERMINATION_RAYS, seed: int = T
     the box chord covered before the first hit (all of it on a miss), summed over the rays,
     over the chords summed: what scales the expected steps of the count model, whose cells
     along a line are in proportion to its length.  The sample also keeps that grid's
-    occupied cells, which :func:`models.general.occupied_cells` is scaled to.
+    occupied cells, which :func:`models.general.occupied_cells` is scaled to, and the
+    occupied cells the rays enter before their hit (the instrumented kernel), which
+    :func:`models.general.surface_visits` takes a surface's count from.
     """
     from . import rays as _rays_mod
 
@@ -445,8 +447,9 @@ def sample_termination(scene: Scene, rays: int = TERMINATION_RAYS, seed: int = T
     total = float(chord.sum())
     fraction = min(1.0, float(covered.sum()) / total) if total > 0 else 1.0
     occupied = res[0] * res[1] * res[2] - int(grid.info["n_empty_cells"])
+    visits = float(grid.count(o, d, visits=True)[3].mean())
     return TerminationSample(fraction=fraction, p_hit=float(np.mean(np.isfinite(t_hit))), rays=int(rays),
-                             resolution=res, occupied=occupied)
+                             resolution=res, occupied=occupied, visits=visits)
 
 
 def _geometry(scene: Scene):

@@ -21,9 +21,8 @@ area ``A_T`` and unit normal ``n_T``:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -277,6 +276,9 @@ class TerminationSample:
     resolution, occupied : optional, the grid the rays were traced through (nx, ny, nz)
         and how many of its cells hold a triangle: what
         :func:`models.general.occupied_cells` scales its count by (both or neither).
+    visits : optional (with ``resolution``), the occupied cells the rays entered before
+        their hit in that grid, per ray: what :func:`models.general.surface_visits` takes
+        a surface's count from.
     """
 
     fraction: float
@@ -284,6 +286,7 @@ class TerminationSample:
     rays: int
     resolution: tuple[int, int, int] | None = None
     occupied: int | None = None
+    visits: float | None = None
 
     def __post_init__(self):
         if not (0.0 <= self.fraction <= 1.0 and 0.0 <= self.p_hit <= 1.0):
@@ -300,6 +303,12 @@ class TerminationSample:
             occ = self.occupied
             if isinstance(occ, bool) or not (isinstance(occ, int) and 0 <= occ <= res[0] * res[1] * res[2]):
                 raise ValueError(f"occupied must be a whole number of the grid's cells, got {occ!r}")
+        if self.visits is not None:
+            if self.resolution is None:
+                raise ValueError("visits need the sample's grid (resolution and occupied)")
+            if isinstance(self.visits, bool) or not (isinstance(self.visits, (int, float))
+                                                     and math.isfinite(self.visits) and self.visits >= 0):
+                raise ValueError(f"visits must be a finite number >= 0, got {self.visits!r}")
 
 
 @dataclass(frozen=True)
