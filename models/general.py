@@ -190,8 +190,9 @@ def occupancy_scale(stats: SceneStats) -> float:
     closer than a cell (a thin shell: the CAD chair's slats and legs) they share cells,
     and the kernel's grids hold 0.46-0.49 of the model's occupied cells at every
     resolution from 1/4 to 4 cells a triangle; elsewhere 0.75-1.17
-    (docs/compare.md, "Occupied cells sampled").  A sample grid more than half occupied
-    says little about how triangles share cells (near saturation any R_occ fits): 1.
+    (docs/compare.md, "Tests counted in the occupied cells, and the occupied cells
+    sampled").  A sample grid more than half occupied says little about how triangles
+    share cells (near saturation any R_occ fits): 1.
     """
     ts = stats.termination
     if ts is None or ts.resolution is None:
@@ -306,10 +307,11 @@ def stopped_tests_per_ray(stats: SceneStats, resolution, *, terms: Terms | None 
 
     The smaller is taken as :func:`calibrate.predict` takes it for a two-level grid's
     subgrids (a surface stops rays sooner than the distance does, never later).
-    APPROXIMATE: against the kernel's counts on the scans of ../shared/meshes within about
-    10% where the distance alone is 50-100% over (docs/compare.md, "Tests counted in the
-    occupied cells"); where the occupied-cell count is off (a soup of clustered triangles)
-    it is off with it.  ``terms.traversed_fraction >= 1`` (rays never stop) gives ``T0``;
+    APPROXIMATE: with the termination sample's occupied cells and visits
+    (:func:`occupancy_scale`, :func:`surface_visits`), against the kernel's counts at the
+    plans within 0-17% on the scans of ../shared/meshes, where the distance alone is
+    25-110% over (docs/compare.md, "Tests counted in the occupied cells, and the occupied
+    cells sampled"); where the occupied-cell count is off it is off with it.  ``terms.traversed_fraction >= 1`` (rays never stop) gives ``T0``;
     with ``terms.mailbox``, the count by the distance (a mailbox's tests per cell are not
     R / occupied).
     """
