@@ -640,9 +640,9 @@ def analytic_uniform_plan(stats, k: Constants, mailbox):
     than EFFECT_TOLERANCE of the predicted time at the optimum, the resolution is the
     cheapest of SEARCH_SCALES around the optimum without them; so too when the tests counted
     in the occupied cells (:func:`models.general.stopped_tests_per_ray`) change the time at
-    the closed form's optimum, which counts them by the distance, by more than that.  Returns (plan, effects)
-    like :func:`paper_plan`; plan also holds ``terms`` (the selected
-    :class:`models.general.Terms`).
+    the closed form's optimum, which counts them by the distance, by more than that.
+    Returns (plan, effects) like :func:`paper_plan`; plan also holds ``terms`` (the
+    selected :class:`models.general.Terms`).
     """
     sel = select_effects(stats, k.t_setup, k.t_step, k.t_int, mailbox=mailbox, termination=True, overlap="exact",
                          levels=1)

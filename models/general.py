@@ -311,8 +311,9 @@ def stopped_tests_per_ray(stats: SceneStats, resolution, *, terms: Terms | None 
     (:func:`occupancy_scale`, :func:`surface_visits`), against the kernel's counts at the
     plans within 0-17% on the scans of ../shared/meshes, where the distance alone is
     25-110% over (docs/compare.md, "Tests counted in the occupied cells, and the occupied
-    cells sampled"); where the occupied-cell count is off it is off with it.  ``terms.traversed_fraction >= 1`` (rays never stop) gives ``T0``;
-    with ``terms.mailbox``, the count by the distance (a mailbox's tests per cell are not
+    cells sampled"); where the occupied-cell count is off it is off with it.
+    ``terms.traversed_fraction >= 1`` (rays never stop) gives ``T0``; with
+    ``terms.mailbox``, the count by the distance (a mailbox's tests per cell are not
     R / occupied).
     """
     terms = terms or Terms()

@@ -156,6 +156,8 @@ def test_termination_scales_separate_triangles_and_caps_a_surface():
     mixed = terminated_visits(v, 0.25, 0.4)
     np.testing.assert_allclose(mixed, 0.25 * 0.4 * v + 0.75 * VISITS_SURFACE * np.minimum(v, 1.0))
     assert isinstance(terminated_visits(3.0, 0.0, 0.5), float)
+    np.testing.assert_allclose(terminated_visits(v, 0.25, 0.4, 1.8),  # a scene's own surface count
+                               0.25 * 0.4 * v + 0.75 * 1.8 * np.minimum(v, 1.0))
 
 
 @pytest.mark.parametrize("name, low, high", [("scattered-compact", 0.9, 1.1), ("sphere", 0.7, 1.3),
@@ -188,7 +190,8 @@ def test_tests_in_the_occupied_cells_never_exceed_the_distance_count_and_reduce_
             stopped = stopped_tests_per_ray(st, res, terms=stopping)
             assert 0.0 < stopped <= by_distance * (1 + 1e-12)
             boxed = Terms(traversed_fraction=frac, mailbox=True)
-            assert stopped_tests_per_ray(st, res, terms=boxed) == predict_uniform(st, res, 0.0, 1.0, 1.0, terms=boxed)[2]
+            boxed_distance = predict_uniform(st, res, 0.0, 1.0, 1.0, terms=boxed)[2]
+            assert stopped_tests_per_ray(st, res, terms=boxed) == boxed_distance
             if st.separate_fraction == 1.0:
                 assert stopped == pytest.approx(by_distance, rel=1e-12)
             else:
