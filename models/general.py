@@ -231,6 +231,14 @@ def terminated_visits(visits, separate_fraction, traversed_fraction, surface=VIS
     return out if out.ndim else float(out)
 
 
+def _open_visits(stats: SceneStats, resolution) -> float:
+    """Occupied cells a ray enters when rays never stop: Crofton as in :func:`steps_per_ray`,
+    for the occupied cells only, ``occupied_cells * S_c / S``."""
+    c = cell_sizes(stats.extent, resolution)
+    s_c = 2.0 * (c[0] * c[1] + c[1] * c[2] + c[2] * c[0])
+    return float(occupied_cells(stats, resolution) * s_c / stats.surface)
+
+
 def surface_visits(stats: SceneStats) -> float:
     """Occupied cells a ray enters on a connected surface before it stops: the termination
     sample's own count (:attr:`models.stats.TerminationSample.visits`, the kernel's in the
@@ -242,9 +250,7 @@ def surface_visits(stats: SceneStats) -> float:
     ts = stats.termination
     if ts is None or ts.visits is None or stats.separate_fraction >= 1.0:
         return VISITS_SURFACE
-    c = cell_sizes(stats.extent, ts.resolution)
-    s_c = 2.0 * float(c[0] * c[1] + c[1] * c[2] + c[2] * c[0])
-    v0 = occupied_cells(stats, ts.resolution) * s_c / stats.surface
+    v0 = _open_visits(stats, ts.resolution)
     if not v0 > 0.0:
         return VISITS_SURFACE
     g = float(cell_fraction(ts.fraction, steps_per_ray(stats.extent, ts.resolution)))
@@ -283,11 +289,9 @@ def visits_per_ray(stats: SceneStats, resolution, *, terms: Terms | None = None)
     the kernel enters 0.9 to 2 occupied cells per ray, against the model's 1.5.
     """
     terms = terms or Terms()
-    c = cell_sizes(stats.extent, resolution)
-    s_c = 2.0 * (c[0] * c[1] + c[1] * c[2] + c[2] * c[0])
-    v = occupied_cells(stats, resolution) * s_c / stats.surface
+    v = _open_visits(stats, resolution)
     if terms.traversed_fraction >= 1.0:
-        return float(v)
+        return v
     g = cell_fraction(terms.traversed_fraction, steps_per_ray(stats.extent, resolution))
     return terminated_visits(v, stats.separate_fraction, g, surface_visits(stats))
 
@@ -319,12 +323,10 @@ def stopped_tests_per_ray(stats: SceneStats, resolution, *, terms: Terms | None 
     terms = terms or Terms()
     if terms.traversed_fraction >= 1.0 or terms.mailbox:
         return float(predict_uniform(stats, resolution, 0.0, 1.0, 1.0, overlap="exact", terms=terms)[2])
-    c = cell_sizes(stats.extent, resolution)
-    s_c = 2.0 * float(c[0] * c[1] + c[1] * c[2] + c[2] * c[0])
-    tests0 = expected_refs(stats, resolution, overlap="exact", edge=terms.edge, area=terms.area) * s_c / stats.surface
+    tests0 = triangle_tests_per_ray(stats, resolution, overlap="exact", edge=terms.edge, area=terms.area)
     g = float(cell_fraction(terms.traversed_fraction, steps_per_ray(stats.extent, resolution)))
     by_distance = g * tests0
-    v0 = occupied_cells(stats, resolution) * s_c / stats.surface
+    v0 = _open_visits(stats, resolution)
     if not v0 > 0.0:
         return float(by_distance)
     visits = terminated_visits(v0, stats.separate_fraction, g, surface_visits(stats))
