@@ -499,7 +499,8 @@ class Grid:
     # -- construction -------------------------------------------------------------
     @classmethod
     def _build(cls, scene: Scene, resolution, *, intersector, mailbox, insertion, levels, threshold,
-               level_scale, level_exponent, subgrid_resolutions, rule_max_axis, memory_limit, threads):
+               level_scale, level_exponent, subgrid_resolutions, rule_max_axis, memory_limit, threads,
+               subgrid_resolutions2=None):
         if not isinstance(scene, Scene):
             raise ValueError(f"scene must be a calibrate.Scene, got {type(scene).__name__}")
         res = _check_resolution(resolution)
@@ -519,7 +520,7 @@ class Grid:
                 memory_limit=int(memory_limit or 0), levels=int(levels), threshold=int(threshold),
                 level_scale=level_scale, level_exponent=level_exponent,
                 subgrid_resolutions=subgrid_resolutions, rule_max_axis=int(rule_max_axis),
-                threads=threads)
+                threads=threads, subgrid_resolutions2=subgrid_resolutions2)
         except (OverflowError, MemoryError) as exc:
             raise ValueError(f"cannot build the grid: {exc}") from None
         return cls(scene, cap, options)
@@ -546,7 +547,7 @@ class Grid:
     @classmethod
     def nested(cls, scene: Scene, levels: int = 2, resolution=None, *, scale: float = MANTA_SCALE,
                exponents=None, threshold: int = DEFAULT_SUBDIVIDE_THRESHOLD, subgrid_resolutions=None,
-               rule_max_axis: int = DEFAULT_RULE_MAX_AXIS, intersector: str = "watertight",
+               subgrid_resolutions2=None, rule_max_axis: int = DEFAULT_RULE_MAX_AXIS, intersector: str = "watertight",
                mailbox: bool = False, insertion: str = "exact", memory_limit: int | None = None,
                threads: int = DEFAULT_BUILD_THREADS) -> "Grid":
         """A nested grid of ``levels`` levels (1 = uniform).
@@ -557,8 +558,11 @@ class Grid:
         where n is the cell's reference count and exponent defaults to Manta's
         3 / (2L + 1 - 2 depth); or, at depth 1, the explicit per-cell
         ``subgrid_resolutions`` ((nx*ny*nz, 3) int, x fastest; a row of zeros
-        means no subgrid), deeper levels following the rule.  ``threads`` as for
-        :meth:`uniform`.
+        means no subgrid), deeper levels following the rule; and at depth 2 the
+        explicit ``subgrid_resolutions2`` (with ``subgrid_resolutions`` and
+        ``levels >= 3``): one row for every cell of every depth-1 subgrid, the
+        subgrids in the order of their top cells and each one's cells x fastest (a row
+        of zeros: no subgrid).  ``threads`` as for :meth:`uniform`.
         """
         levels = _whole_number(levels, "levels", 1, MAX_LEVELS, str(MAX_LEVELS))
         if not _positive_finite(scale):
@@ -592,10 +596,26 @@ class Grid:
             sub = np.ascontiguousarray(sub, dtype=np.int32)
             if levels < 2:
                 raise ValueError("subgrid_resolutions needs levels >= 2")
+        sub2 = None
+        if subgrid_resolutions2 is not None:
+            if sub is None or levels < 3:
+                raise ValueError("subgrid_resolutions2 needs subgrid_resolutions and levels >= 3")
+            full = (sub > 0).all(axis=1)
+            rows = int(np.prod(sub[full].astype(np.int64), axis=1).sum())
+            sub2 = _as_array(subgrid_resolutions2, "subgrid_resolutions2", f"({rows}, 3)")
+            if sub2.shape != (rows, 3) or not np.issubdtype(sub2.dtype, np.integer):
+                raise ValueError(f"subgrid_resolutions2 must be whole numbers of shape ({rows}, 3), one row per "
+                                 f"cell of the depth-1 subgrids, got {sub2.shape} {sub2.dtype}")
+            if sub2.min(initial=0) < 0 or sub2.max(initial=0) > 2**31 - 1:
+                raise ValueError("subgrid_resolutions2 must be between 0 (no subgrid) and 2^31 - 1")
+            partial = (sub2 == 0).any(axis=1) & (sub2 != 0).any(axis=1)
+            if partial.any():
+                raise ValueError(f"subgrid_resolutions2 row {int(np.argmax(partial))} mixes zero and non-zero axes")
+            sub2 = np.ascontiguousarray(sub2, dtype=np.int32)
         return cls._build(scene, res, intersector=intersector, mailbox=mailbox, insertion=insertion,
                           levels=int(levels), threshold=int(threshold), level_scale=scales,
                           level_exponent=exps, subgrid_resolutions=sub, rule_max_axis=rule_max_axis,
-                          memory_limit=memory_limit, threads=threads)
+                          memory_limit=memory_limit, threads=threads, subgrid_resolutions2=sub2)
 
     # -- properties ---------------------------------------------------------------
     @property

@@ -106,16 +106,17 @@ static PyObject *py_build(PyObject *self, PyObject *args, PyObject *kw)
     static char *kwlist[] = {"vertices", "faces", "resolution", "intersector", "insertion",
                              "mailbox", "box", "memory_limit", "levels", "threshold",
                              "level_scale", "level_exponent", "subgrid_resolutions",
-                             "rule_max_axis", "threads", NULL};
+                             "rule_max_axis", "threads", "subgrid_resolutions2", NULL};
     PyObject *vobj, *fobj, *box = Py_None, *scale = Py_None, *expo = Py_None, *subres = Py_None;
+    PyObject *subres2 = Py_None;
     int rx, ry, rz, intersector = GC_WATERTIGHT, insertion = GC_INSERT_EXACT, mailbox = 0, levels = 1;
     int rule_max_axis = 256, threads = 1;
     unsigned long long memory_limit = 0;
     unsigned int threshold = 2;
-    if (!PyArg_ParseTupleAndKeywords(args, kw, "OO(iii)|iipOKiIOOOii", kwlist, &vobj, &fobj, &rx, &ry,
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OO(iii)|iipOKiIOOOiiO", kwlist, &vobj, &fobj, &rx, &ry,
                                      &rz, &intersector, &insertion, &mailbox, &box, &memory_limit,
                                      &levels, &threshold, &scale, &expo, &subres, &rule_max_axis,
-                                     &threads)) {
+                                     &threads, &subres2)) {
         return NULL;
     }
     gc_build_params p = gc_build_params_default();
@@ -172,6 +173,18 @@ static PyObject *py_build(PyObject *self, PyObject *args, PyObject *kw)
         }
         p.subgrid_resolutions = (const int32_t *)PyArray_DATA(sr);
     }
+    PyArrayObject *sr2 = NULL;
+    if (subres2 != Py_None) {
+        sr2 = as_rows3(subres2, NPY_INT32, "subgrid_resolutions2");
+        if (!sr2) {
+            Py_DECREF(v);
+            Py_DECREF(f);
+            Py_XDECREF(sr);
+            return NULL;
+        }
+        p.subgrid_resolutions2 = (const int32_t *)PyArray_DATA(sr2);
+        p.n_subgrid_resolutions2 = (int64_t)PyArray_DIM(sr2, 0);
+    }
     gc_mesh mesh = {(const double *)PyArray_DATA(v), (int64_t)PyArray_DIM(v, 0),
                     (const int64_t *)PyArray_DATA(f), (int64_t)PyArray_DIM(f, 0)};
     gc_grid *g = NULL;
@@ -181,6 +194,7 @@ static PyObject *py_build(PyObject *self, PyObject *args, PyObject *kw)
     Py_END_ALLOW_THREADS Py_DECREF(v);
     Py_DECREF(f);
     Py_XDECREF(sr);
+    Py_XDECREF(sr2);
     if (st != GC_OK) {
         return raise_status(st, err);
     }

@@ -992,11 +992,38 @@ def _kernel_subgrid_resolutions(scene, stats, counts, overlap):
     return sub
 
 
+def _kernel_subgrid_tables(scene, stats, counts, overlap):
+    """The depth-1 table of :func:`_kernel_subgrid_resolutions` and, for three levels, the
+    depth-2 table (one row per cell of the depth-1 subgrids, as ``Grid.nested``'s
+    ``subgrid_resolutions2`` takes it; None for two levels), so the kernel builds every
+    level of the plan.
+
+    The plan's depth-1 subgrids are the non-zero rows of the first table in the order of
+    their top cells, the kernel's order; the plan's second-level cells are numbered the
+    same way (each subgrid's cells x fastest), so a leaf grid goes to the row of the
+    non-empty cell it subdivides.
+    """
+    sub = _kernel_subgrid_resolutions(scene, stats, counts, overlap)
+    if counts.levels < 3:
+        return sub, None
+    mid, leaf = counts.per_level[1], counts.per_level[2]
+    res = np.asarray(mid.resolutions, dtype=np.int64).reshape(-1, 3)
+    child = np.asarray(leaf.resolutions).reshape(-1, 3)
+    cells = np.asarray(mid.nonempty_cells)
+    if child.shape[0] != cells.size:
+        raise ValueError(f"the nested plan has {child.shape[0]} leaf grids but {cells.size} non-empty second-level "
+                         "cells")
+    sub2 = np.zeros((int(np.prod(res, axis=1).sum()), 3), dtype=np.int32)
+    sub2[cells] = child
+    return sub, sub2
+
+
 def _simulated_nested(scene, stats, k: Constants, L, rays, mailbox):
     plan, effects = _analytic_nested(scene, stats, k, L, mailbox)
     counts = plan["counts"]
-    sub = _kernel_subgrid_resolutions(scene, stats, counts, plan["overlap"])
-    grid = Grid.nested(scene, levels=L, resolution=counts.top_resolution, subgrid_resolutions=sub, mailbox=mailbox)
+    sub, sub2 = _kernel_subgrid_tables(scene, stats, counts, plan["overlap"])
+    grid = Grid.nested(scene, levels=L, resolution=counts.top_resolution, subgrid_resolutions=sub,
+                       subgrid_resolutions2=sub2, mailbox=mailbox)
     o, d = _rays(scene, rays, SIM_RAYS, SIM_SEED)
     steps, tests, subgrids, n_visits, info = _count(grid, o, d)
     plan = dict(plan, steps=steps, tests=tests, subgrids=subgrids, memory_bytes=int(info["memory_bytes"]),
@@ -1006,8 +1033,7 @@ def _simulated_nested(scene, stats, k: Constants, L, rays, mailbox):
     effects.append(dict(name="simulated", used=True, change=0.0,
                         reason=(f"instrumented kernel on {SIM_RAYS} {rays} rays through the {L}-level plan built "
                                 f"in the kernel ({steps:.3g} steps, {tests:.3g} tests, {subgrids:.3g} subgrids per "
-                                "ray); top resolution from the analytic plan, not re-optimised"
-                                + ("; deeper levels by the kernel's rule" if L > 2 else ""))))
+                                "ray); top resolution from the analytic plan, not re-optimised")))
     return plan, effects
 
 
@@ -1159,8 +1185,8 @@ def recommended_grid(scene, *, constants=None, samples=None, ratio=None, levels=
     Same plan as :func:`predict` with ``fidelity="analytic"`` (and the same arguments):
     ``levels="1"`` gives the uniform recommendation, ``"auto"`` the nested one (which may
     be a single level when no deeper grid is predicted to pay).  A nested plan is built
-    with its top resolution and its per-cell depth-1 subgrid resolutions; deeper levels
-    follow the kernel's rule.
+    with its top resolution and its per-cell subgrid resolutions at every level
+    (:func:`_kernel_subgrid_tables`).
 
     Returns ``(grid, plan)``: a :class:`calibrate._grid.Grid` and a dict with ``levels``
     (the number of levels), ``resolution`` (top [nx, ny, nz]), ``level_plans`` (the plan's
@@ -1177,16 +1203,17 @@ def recommended_grid(scene, *, constants=None, samples=None, ratio=None, levels=
     stats = scene_statistics(scene)
     plan, _ = _analytic_plan(scene, stats, k, levels, bool(mailbox))
     n_levels = len(plan["levels"])
-    sub = None
+    sub = sub2 = None
     if n_levels > 1:
         counts = plan["counts"]
-        sub = _kernel_subgrid_resolutions(scene, stats, counts, plan["overlap"])
+        sub, sub2 = _kernel_subgrid_tables(scene, stats, counts, plan["overlap"])
         top = _res_list(counts.top_resolution)
     else:
         top = _res_list(plan["levels"][0]["resolution"])
     t1 = time.perf_counter()
     if n_levels > 1:
-        grid = Grid.nested(scene, levels=n_levels, resolution=top, subgrid_resolutions=sub, mailbox=bool(mailbox))
+        grid = Grid.nested(scene, levels=n_levels, resolution=top, subgrid_resolutions=sub,
+                           subgrid_resolutions2=sub2, mailbox=bool(mailbox))
     else:
         grid = Grid.uniform(scene, top, mailbox=bool(mailbox))
     t2 = time.perf_counter()

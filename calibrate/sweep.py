@@ -18,8 +18,10 @@ Subgrid sizing of a nested spec (``subgrids``):
 ``model``
     As ``calibrate predict`` plans it: :func:`models.nested.nested_counts` sizes each
     depth-1 subgrid from its own sub-scene for the ratio ``ratio`` (the general
-    model's cubic optimum per cell) at the spec's top resolution; the kernel's rule
-    sizes deeper levels.  ``sub_scale`` multiplies every depth-1 subgrid's axes.
+    model's cubic optimum per cell) at the spec's top resolution, and with three levels
+    each second-level cell's leaf grid the same way.  ``sub_scale`` multiplies every
+    depth-1 subgrid's axes; the leaf grids of three levels are then sized by the model
+    for the cells they get.
 ``rule``
     The kernel's rule: a cell with ``n > threshold`` references gets
     ``(scale n)^exponent`` cells (Manta's exponents unless ``exponents`` is given).
@@ -210,13 +212,17 @@ class GridSpec:
             scale = self.scale * self.sub_scale ** (3.0 / exps[1])
             return Grid.nested(scene, levels=self.depth, resolution=self.top, scale=scale, exponents=exps,
                                threshold=self.threshold, mailbox=mailbox, memory_limit=memory_limit)
-        sub = model_subgrid_resolutions(scene, self.top, self.depth, self.ratio)
-        if self.sub_scale != 1.0:
-            nz = sub[:, 0] > 0
-            sub = sub.copy()
-            sub[nz] = np.clip(np.rint(sub[nz] * self.sub_scale), 1, 2 ** 31 - 1).astype(sub.dtype)
+        if self.depth >= 3:  # the leaf table depends on the depth-1 subgrids: the model sizes both
+            sub, sub2 = model_subgrid_tables(scene, self.top, self.depth, self.ratio, self.sub_scale)
+        else:
+            sub, sub2 = model_subgrid_resolutions(scene, self.top, self.depth, self.ratio), None
+            if self.sub_scale != 1.0:
+                nz = sub[:, 0] > 0
+                sub = sub.copy()
+                sub[nz] = np.clip(np.rint(sub[nz] * self.sub_scale), 1, 2 ** 31 - 1).astype(sub.dtype)
         return Grid.nested(scene, levels=self.depth, resolution=self.top, subgrid_resolutions=sub,
-                           threshold=self.threshold, mailbox=mailbox, memory_limit=memory_limit)
+                           subgrid_resolutions2=sub2, threshold=self.threshold, mailbox=mailbox,
+                           memory_limit=memory_limit)
 
     def _occupied(self, scene: Scene) -> np.ndarray:
         return Grid.uniform(scene, self.top).top_counts()
@@ -229,20 +235,32 @@ def model_subgrid_resolutions(scene: Scene, top, depth: int, ratio: float) -> np
     leaves) for ``depth`` levels and ``T_int / T_step = ratio``, laid out per top cell
     as the kernel takes them (x fastest; zero rows for empty cells).  Cached per scene.
     """
+    return model_subgrid_tables(scene, top, depth, ratio)[0]
+
+
+def model_subgrid_tables(scene: Scene, top, depth: int, ratio: float, sub_scale: float = 1.0):
+    """The nested model's subgrid tables at top resolution ``top``: ``(sub, sub2)``.
+
+    ``sub`` as :func:`model_subgrid_resolutions` gives it (its axes times ``sub_scale``,
+    rounded), ``sub2`` the leaf grids of three levels, one row per cell of the depth-1
+    subgrids (``Grid.nested``'s ``subgrid_resolutions2``), sized by the model for the
+    scaled depth-1 cells; None for two levels.  Cached per scene.
+    """
     from models.nested import nested_counts
 
-    from .predict import _geometry, _kernel_subgrid_resolutions
+    from .predict import _geometry, _kernel_subgrid_tables
 
     top = _res3(top)
     cache = _MODEL_CACHE.setdefault(scene, {})
-    key = (top, int(depth), float(ratio))
+    key = (top, int(depth), float(ratio), float(sub_scale))
     if key not in cache:
         stats = scene.stats
         geom, corners = _geometry(scene)
         overlap = "exact" if corners is not None else "bbox"
         counts = nested_counts(geom, stats.box_lo, stats.box_hi, top, int(depth), float(ratio), overlap=overlap,
-                               corners=corners, leaves="analytic", overlap_test=triangle_box_overlap)
-        cache[key] = _kernel_subgrid_resolutions(scene, stats, counts, overlap)
+                               corners=corners, leaves="analytic", overlap_test=triangle_box_overlap,
+                               child_scale=float(sub_scale))
+        cache[key] = _kernel_subgrid_tables(scene, stats, counts, overlap)
     return cache[key]
 
 

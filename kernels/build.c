@@ -49,6 +49,8 @@ typedef struct {
     const gc_build_params *p;
     char *err;
     int threads;           /* parts a pass may be split into (>= 1) */
+    int64_t rows2_base;    /* subgrid_resolutions2: first row of the depth-1 subgrid being built */
+    int64_t rows2_next;    /* ... and of the next one */
 #ifndef GC_NO_THREADS
     pthread_mutex_t lock;  /* guards scratch and err while parts run */
 #endif
@@ -524,6 +526,15 @@ static void subgrid_resolution(builder *b, const gc_node *nd, int depth, int64_t
         }
         return;
     }
+    if (depth == 1 && p->subgrid_resolutions2) {
+        const int32_t *r = p->subgrid_resolutions2 + 3 * (b->rows2_base + c);
+        if (r[0] > 0 || r[1] > 0 || r[2] > 0) {
+            res[0] = r[0];
+            res[1] = r[1];
+            res[2] = r[2];
+        }
+        return;
+    }
     if (count <= p->subdivide_threshold) {
         return;
     }
@@ -650,6 +661,10 @@ static gc_status build_node(builder *b, const uint32_t *prims, int64_t n_prims, 
             for (int i = 0; i < 3; ++i) {
                 clo[i] = nd.lo[i] + (double)cc[i] * nd.cell[i];
                 chi[i] = (cc[i] + 1 == nd.n[i]) ? nd.hi[i] : nd.lo[i] + (double)(cc[i] + 1) * nd.cell[i];
+            }
+            if (depth == 0) { /* the rows of subgrid_resolutions2 this subgrid's cells take */
+                b->rows2_base = b->rows2_next;
+                b->rows2_next += (int64_t)sub[0] * sub[1] * sub[2];
             }
             uint32_t child;
             st = build_node(b, sorted + off[c], (int64_t)count, clo, chi, sub, depth + 1, &child);
@@ -875,6 +890,43 @@ static gc_status check_params(const gc_build_params *p, char *err)
             !(p->level_exponent[d] > 0.0) || !isfinite(p->level_exponent[d])) {
             gc_set_error(err, "the rule for level %d needs a positive finite scale and exponent", d + 1);
             return GC_ERR_ARGUMENT;
+        }
+    }
+    if (p->subgrid_resolutions2) {
+        if (!p->subgrid_resolutions || p->levels < 3) {
+            gc_set_error(err, "subgrid_resolutions2 needs subgrid_resolutions and levels >= 3");
+            return GC_ERR_ARGUMENT;
+        }
+        /* rows the depth-1 subgrids' cells need (a bad resolution fails its own check later) */
+        int64_t top = 1, rows = 0;
+        for (int i = 0; i < 3; ++i) {
+            if (p->resolution[i] < 1 || top > (int64_t)GC_MAX_CELLS / p->resolution[i]) {
+                top = -1;
+                break;
+            }
+            top *= p->resolution[i];
+        }
+        for (int64_t c = 0; c < top; ++c) {
+            const int32_t *r = p->subgrid_resolutions + 3 * c;
+            if (r[0] > 0 && r[1] > 0 && r[2] > 0) {
+                double cells = (double)r[0] * (double)r[1] * (double)r[2];
+                if (cells > (double)GC_MAX_CELLS || (double)rows + cells > (double)GC_MAX_CELLS) {
+                    rows = -1;
+                    break;
+                }
+                rows += (int64_t)r[0] * r[1] * r[2];
+            }
+        }
+        if (top > 0 && rows >= 0 && rows != p->n_subgrid_resolutions2) {
+            gc_set_error(err,
+                         "subgrid_resolutions2 has %lld rows; the depth-1 subgrids have %lld cells, "
+                         "one row each",
+                         (long long)p->n_subgrid_resolutions2, (long long)rows);
+            return GC_ERR_ARGUMENT;
+        }
+        if (top > 0 && rows < 0) {
+            gc_set_error(err, "the depth-1 subgrids' cells overflow the grid's 32-bit cell offsets");
+            return GC_ERR_OVERFLOW;
         }
     }
     if (p->threads < 0) {

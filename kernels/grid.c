@@ -45,6 +45,8 @@ gc_build_params gc_build_params_default(void)
         p.level_exponent[d] = 1.0;
     }
     p.subgrid_resolutions = NULL;
+    p.subgrid_resolutions2 = NULL;
+    p.n_subgrid_resolutions2 = 0;
     p.rule_max_axis = 256;
     p.threads = 1;
     return p;

@@ -95,8 +95,18 @@ typedef struct {
     /* Optional explicit resolutions of the depth-1 subgrids: (nx*ny*nz of the top
      * level, 3) row-major, indexed like the top level's cells; a row of zeros means
      * no subgrid for that cell.  Overrides the rule and the threshold at depth 1;
-     * deeper levels still follow the rule.  NULL: use the rule. */
+     * deeper levels follow subgrid_resolutions2 or the rule.  NULL: use the rule. */
     const int32_t *subgrid_resolutions;
+    /* Optional explicit resolutions of the depth-2 subgrids (needs
+     * subgrid_resolutions and levels >= 3): one row for every cell of every depth-1
+     * subgrid, the subgrids in the order of their top-level cells and each one's
+     * cells x fastest -- the rows of top cell c's subgrid start at the sum of
+     * nx*ny*nz over the non-zero rows of subgrid_resolutions before c.  A row of
+     * zeros means no subgrid.  Overrides the rule and the threshold at depth 2;
+     * deeper levels follow the rule.  NULL: use the rule. */
+    const int32_t *subgrid_resolutions2;
+    /* Rows of subgrid_resolutions2 (checked against the depth-1 subgrids' cells). */
+    int64_t n_subgrid_resolutions2;
     /* Largest per-axis resolution the rule may produce for a subgrid. */
     int32_t rule_max_axis;
     /* Threads the build may use (0 or 1: the calling thread only; at most

@@ -111,6 +111,9 @@ class LevelInfo:
     sub_n, sub_e1, sub_e2 : (nonempty,) sub-scene statistics of the non-empty cells
     (references, clipped E1, clipped E2) when a level below exists, else None;
     sub_extent : (nonempty, 3) their cell extents.
+    nonempty_cells : (nonempty,) flat indices of the non-empty cells over the level's
+    grids (each grid's cells x fastest, the grids in order) when a level below exists:
+    the next level's grids, in order, are these cells' subgrids.
     """
 
     grids: int
@@ -123,6 +126,7 @@ class LevelInfo:
     sub_e1: np.ndarray | None = None
     sub_e2: np.ndarray | None = None
     sub_extent: np.ndarray | None = None
+    nonempty_cells: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -170,7 +174,7 @@ def _vector_resolution(total_cells, extent, max_axis):
 
 def nested_counts(geom: TriangleGeometry, box_lo, box_hi, top_resolution, levels, r, *,
                   overlap="bbox", corners=None, leaves="enumerate", overlap_test=None,
-                  separate_fraction=0.0) -> NestedCounts:
+                  separate_fraction=0.0, child_scale=1.0) -> NestedCounts:
     """Build an L-level grid structure from the triangles and return its expected counts.
 
     Parameters
@@ -189,6 +193,8 @@ def nested_counts(geom: TriangleGeometry, box_lo, box_hi, top_resolution, levels
         result), e.g. a compiled one; this module stays free of any kernel.
     separate_fraction : :attr:`models.stats.SceneStats.separate_fraction`, for the occupied
         cells of analytic leaves (:func:`models.general.occupied_cells`, per subgrid).
+    child_scale : per-axis factor on the depth-1 subgrids' resolutions (rounded, >= 1),
+        for sweeps around a plan; deeper levels are sized for the cells they then get.
 
     ``visits`` counts the occupied leaf cells a line enters (no termination): exactly the
     non-empty leaf cells' ``S_cell / S`` when the leaves are enumerated, the occupied-cell
@@ -204,6 +210,8 @@ def nested_counts(geom: TriangleGeometry, box_lo, box_hi, top_resolution, levels
         raise ValueError(f"levels must be an integer >= 1, got {levels!r}")
     if not r > 0:
         raise ValueError(f"r must be > 0, got {r!r}")
+    if not (np.isfinite(child_scale) and child_scale > 0):
+        raise ValueError(f"child_scale must be finite and > 0, got {child_scale!r}")
     lo, hi = grid_box(box_lo, box_hi)
     ext_root = hi - lo
     s_root = 2.0 * (ext_root[0] * ext_root[1] + ext_root[1] * ext_root[2] + ext_root[2] * ext_root[0])
@@ -328,7 +336,8 @@ def nested_counts(geom: TriangleGeometry, box_lo, box_hi, top_resolution, levels
         child_ext = cell[cell_node]
         child_lo = node_lo[cell_node] + cijk * child_ext
         v_c = np.prod(child_ext, axis=1)
-        per_level.append(replace(info, sub_n=n_c, sub_e1=e1_c, sub_e2=e2_c, sub_extent=child_ext))
+        per_level.append(replace(info, sub_n=n_c, sub_e1=e1_c, sub_e2=e2_c, sub_extent=child_ext,
+                                 nonempty_cells=nonempty_ids))
         remaining = levels - depth - 1
         if remaining == 1:
             h = solve_cell_cubic(2.0 * n_c * r, r * e1_c, v_c)
@@ -337,6 +346,8 @@ def nested_counts(geom: TriangleGeometry, box_lo, box_hi, top_resolution, levels
             k_c = np.maximum(e2_c / v_c ** (2.0 / 3.0), 1e-3)
             m3 = l_level_cells(n_c, r, remaining, k_c, kind="points")[0]
             child_res = _vector_resolution(m3, child_ext, MAX_SUBGRID_CELLS_PER_AXIS)
+        if depth == 0 and child_scale != 1.0:  # as calibrate.sweep.GridSpec scales a plan's subgrids
+            child_res = np.clip(np.rint(child_res * float(child_scale)), 1, 2**31 - 1).astype(np.int64)
         node_lo, node_ext, node_res = child_lo, child_ext, child_res
         pair_tri, pair_node = tri, child
     return NestedCounts(levels=int(levels), top_resolution=tuple(int(x) for x in np.asarray(top_resolution)),

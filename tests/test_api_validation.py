@@ -603,6 +603,41 @@ def test_nested_rejects_bad_subgrid_resolutions(scene, label, sub, levels, patte
         Grid.nested(scene, levels, (2, 2, 2), subgrid_resolutions=sub)
 
 
+def subgrid2_cases():
+    sub = np.ones((8, 3), dtype=np.int64)  # top (2, 2, 2): eight 1x1x1 subgrids, eight rows
+    sub[0] = (2, 1, 1)  # ... and the first two cells: nine rows
+    ones = np.ones((9, 3), dtype=np.int64)
+    return [
+        ("without a depth-1 table", None, ones, 3, r"subgrid_resolutions2 needs subgrid_resolutions and levels >= 3"),
+        ("two levels", sub, ones, 2, r"subgrid_resolutions2 needs subgrid_resolutions and levels >= 3"),
+        ("a row short", sub, ones[:8], 3, r"shape \(9, 3\), one row per cell of the depth-1 subgrids, got \(8, 3\)"),
+        ("a row over", sub, np.ones((10, 3), dtype=np.int64), 3, r"shape \(9, 3\).*got \(10, 3\)"),
+        ("float", sub, ones.astype(float), 3, r"whole numbers of shape \(9, 3\).*float64"),
+        ("negative", sub, -ones, 3, r"between 0 \(no subgrid\) and 2\^31 - 1"),
+        ("mixed zero axes", sub, np.r_[ones[:4], [[0, 2, 2]], ones[5:]], 3, r"row 4 mixes zero and non-zero axes"),
+        ("ragged", sub, [[1, 1, 1]] * 8 + [[1, 1]], 3, r"^subgrid_resolutions2 must have shape \(9, 3\), got rows of different lengths$"),
+    ]
+
+
+@pytest.mark.parametrize("label,sub,sub2,levels,pattern", subgrid2_cases(), ids=[c[0] for c in subgrid2_cases()])
+def test_nested_rejects_bad_subgrid_resolutions2(scene, label, sub, sub2, levels, pattern):
+    with pytest.raises(ValueError, match=pattern):
+        Grid.nested(scene, levels, (2, 2, 2), subgrid_resolutions=sub, subgrid_resolutions2=sub2)
+
+
+def test_nested_builds_both_tables_cell_for_cell(scene):
+    sub = np.ones((8, 3), dtype=np.int64)
+    sub[0] = (2, 1, 1)
+    sub[3] = 0  # a leaf list: no rows for it
+    sub2 = np.zeros((8, 3), dtype=np.int64)
+    sub2[1] = (2, 2, 3)
+    sub2[7] = (1, 4, 1)
+    g = Grid.nested(scene, 3, (2, 2, 2), subgrid_resolutions=sub, subgrid_resolutions2=sub2)
+    assert g.info["n_nodes"] == 1 + 7 + 2
+    assert g.info["n_cells"] == 8 + 8 + 12 + 4
+    assert g.info["levels"] == 3
+
+
 def test_nested_accepts_subgrid_resolutions_as_lists_and_small_ints(scene):
     for sub in ([[2, 1, 3]] * 8, np.full((8, 3), 2, dtype=np.int8), np.zeros((8, 3), dtype=np.int32)):
         g = Grid.nested(scene, 2, (2, 2, 2), subgrid_resolutions=sub)

@@ -3,7 +3,8 @@
 For every built-in scene and several real meshes, 10^5 seeded rays (isotropic
 lines through the box, camera rays, rays leaving the surface) are traced by
 brute force once per intersector; then through uniform grids from 1x1x1 to
-fine and nested grids of depth 2 and 3, with and without mailboxing.  Every
+fine and nested grids of depth 2 and 3 (by the kernel's rule and by explicit
+tables), with and without mailboxing.  Every
 ray's first hit must agree, and the timed and instrumented twins must return
 identical hits, on every sign stage (SSE2, AVX2) the host's CPU runs.
 """
@@ -51,6 +52,14 @@ def grid_cases(scene: Scene):
     cases.append(("nested L=2 explicit", lambda isect, mb: Grid.nested(
         scene, levels=2, resolution=coarse, intersector=isect, mailbox=mb,
         subgrid_resolutions=np.tile(np.array([[3, 2, 4]], dtype=np.int32), (int(np.prod(coarse)), 1)))))
+    # three levels from both tables: every top cell 2x2x2, every second-level cell 2x3x1 but
+    # every fifth (a leaf list)
+    rows2 = 8 * int(np.prod(coarse))
+    sub2 = np.tile(np.array([[2, 3, 1]], dtype=np.int32), (rows2, 1))
+    sub2[::5] = 0
+    cases.append(("nested L=3 explicit", lambda isect, mb: Grid.nested(
+        scene, levels=3, resolution=coarse, intersector=isect, mailbox=mb,
+        subgrid_resolutions=np.full((int(np.prod(coarse)), 3), 2, dtype=np.int32), subgrid_resolutions2=sub2)))
     return cases
 
 

@@ -11,7 +11,8 @@ import pytest
 from calibrate import rays
 from calibrate._grid import Grid, Scene
 from calibrate.sweep import (MAX_SWEEP_CELLS, GridSpec, best_point, fit_minimum, measure_time_per_ray,
-                             model_subgrid_resolutions, penalty, scaled_resolutions, split_rounds, sweep)
+                             model_subgrid_resolutions, model_subgrid_tables, penalty, scaled_resolutions,
+                             split_rounds, sweep)
 
 #: Short timings: these tests check counts and bookkeeping, never speed.
 FAST = dict(rounds=2, min_time=1e-4)
@@ -161,6 +162,30 @@ def test_model_subgrids_scale_per_axis(cylinder):
     kept = (base[:, 0] > 0) & (counts <= spec.threshold)
     expected = top[0] * top[1] * top[2] + doubled - np.maximum(1, np.rint(base[kept] * 2.0)).prod(axis=1).sum()
     assert n_cells == expected
+
+
+@pytest.mark.parametrize("sub_scale", [1.0, 2.0, 0.5])
+def test_three_level_model_specs_are_built_level_for_level(cylinder, sub_scale):
+    """The kernel builds the nested model's three levels: its grids and cells, level by level."""
+    from models.nested import nested_counts
+
+    from calibrate._grid import triangle_box_overlap
+    from calibrate.predict import _geometry
+
+    top, ratio = (3, 3, 8), 0.15
+    geom, corners = _geometry(cylinder)
+    counts = nested_counts(geom, cylinder.stats.box_lo, cylinder.stats.box_hi, top, 3, ratio, overlap="exact",
+                           corners=corners, leaves="analytic", overlap_test=triangle_box_overlap,
+                           child_scale=sub_scale)
+    info = GridSpec("nested", [top], depth=3, ratio=ratio, sub_scale=sub_scale).build(cylinder).info
+    assert info["levels"] == 3
+    assert info["n_nodes"] == 1 + sum(lv.grids for lv in counts.per_level[1:])
+    assert info["n_cells"] == counts.cells
+    sub, sub2 = model_subgrid_tables(cylinder, top, 3, ratio, sub_scale)
+    leaves = sub2[sub2[:, 0] > 0]
+    assert leaves.shape[0] == counts.per_level[2].grids and (leaves.prod(axis=1) > 1).sum() > 50
+    if sub_scale == 1.0:  # the two-level table is the same function's
+        assert np.array_equal(sub, model_subgrid_resolutions(cylinder, top, 3, ratio))
 
 
 def test_sweep_skips_specs_over_the_cell_budget(cylinder):

@@ -807,6 +807,93 @@ static void test_big_arrays(void)
     mesh_free(&m);
 }
 
+/* Explicit resolutions at depths 1 and 2: the grid holds exactly the cells the two
+ * tables give, agrees with brute force, and bad tables are refused. */
+static void test_explicit_depth2_resolutions(void)
+{
+    mesh_buf m = random_soup(300, 0.3, 11);
+    gc_mesh mesh = as_mesh(&m);
+    char err[GC_ERROR_LEN];
+    const int32_t top[3] = {3, 2, 4};
+    const int64_t n_top = 3 * 2 * 4;
+    int32_t sub1[24 * 3];
+    int64_t rows2 = 0;
+    rng_seed(12);
+    for (int64_t c = 0; c < n_top; ++c) { /* every third top cell a leaf, the rest 1..3 per axis */
+        for (int i = 0; i < 3; ++i) {
+            sub1[3 * c + i] = (c % 3 == 2) ? 0 : 1 + (int32_t)(3.0 * rng_uniform());
+        }
+        if (c % 3 != 2) {
+            rows2 += (int64_t)sub1[3 * c] * sub1[3 * c + 1] * sub1[3 * c + 2];
+        }
+    }
+    int32_t *sub2 = malloc((size_t)rows2 * 3 * sizeof(int32_t));
+    int64_t cells = n_top, cells2 = 0;
+    for (int64_t c = 0; c < n_top; ++c) {
+        if (c % 3 != 2) {
+            cells += (int64_t)sub1[3 * c] * sub1[3 * c + 1] * sub1[3 * c + 2];
+        }
+    }
+    for (int64_t r = 0; r < rows2; ++r) { /* half the depth-1 cells a 1..4-per-axis subgrid */
+        int leaf = rng_uniform() < 0.5;
+        for (int i = 0; i < 3; ++i) {
+            sub2[3 * r + i] = leaf ? 0 : 1 + (int32_t)(4.0 * rng_uniform());
+        }
+        if (!leaf) {
+            cells2 += (int64_t)sub2[3 * r] * sub2[3 * r + 1] * sub2[3 * r + 2];
+        }
+    }
+    gc_build_params p = gc_build_params_default();
+    memcpy(p.resolution, top, sizeof p.resolution);
+    p.levels = 3;
+    p.subgrid_resolutions = sub1;
+    p.subgrid_resolutions2 = sub2;
+    p.n_subgrid_resolutions2 = rows2;
+    gc_grid *g = NULL;
+    err[0] = 0;
+    CHECK(gc_grid_build(&mesh, &p, &g, err) == GC_OK, "explicit depth-2 table refused: %s", err);
+    if (g) {
+        gc_grid_info info;
+        gc_grid_get_info(g, &info);
+        CHECK(info.n_cells == cells + cells2, "explicit depth-2 table: %lld cells, the tables give %lld",
+              (long long)info.n_cells, (long long)(cells + cells2));
+        gc_grid_free(g);
+    }
+    const int64_t n = 1500;
+    double *o = malloc((size_t)n * 3 * sizeof(double)), *d = malloc((size_t)n * 3 * sizeof(double));
+    double lo[3], hi[3];
+    CHECK(gc_mesh_box(&mesh, lo, hi, err) == GC_OK, "box: %s", err);
+    random_rays(n, lo, hi, 13, o, d);
+    for (int isect = 0; isect < 2; ++isect) {
+        p.intersector = isect ? GC_WATERTIGHT : GC_MOLLER_TRUMBORE;
+        compare_with_brute(&m, &p, n, o, d, isect ? "explicit depth 2, watertight" : "explicit depth 2, MT");
+    }
+    p.intersector = GC_WATERTIGHT;
+
+    /* refusals: a row short, a row over, no depth-1 table, two levels */
+    g = (gc_grid *)&err;
+    p.n_subgrid_resolutions2 = rows2 - 1;
+    err[0] = 0;
+    CHECK(gc_grid_build(&mesh, &p, &g, err) == GC_ERR_ARGUMENT && g == NULL && strstr(err, "rows"),
+          "a depth-2 table a row short not refused: %s", err);
+    p.n_subgrid_resolutions2 = rows2 + 1;
+    err[0] = 0;
+    CHECK(gc_grid_build(&mesh, &p, &g, err) == GC_ERR_ARGUMENT && strstr(err, "rows"),
+          "a depth-2 table a row over not refused: %s", err);
+    p.n_subgrid_resolutions2 = rows2;
+    p.subgrid_resolutions = NULL;
+    err[0] = 0;
+    CHECK(gc_grid_build(&mesh, &p, &g, err) == GC_ERR_ARGUMENT && strstr(err, "needs subgrid_resolutions"),
+          "a depth-2 table without a depth-1 table not refused: %s", err);
+    p.subgrid_resolutions = sub1;
+    p.levels = 2;
+    err[0] = 0;
+    CHECK(gc_grid_build(&mesh, &p, &g, err) == GC_ERR_ARGUMENT && strstr(err, "levels >= 3"),
+          "a depth-2 table with two levels not refused: %s", err);
+    free(o), free(d), free(sub2);
+    mesh_free(&m);
+}
+
 int main(void)
 {
     test_prepared_overlap();
@@ -820,6 +907,7 @@ int main(void)
     test_watertight();
     test_scaled_scenes();
     test_visits_and_positions();
+    test_explicit_depth2_resolutions();
     test_big_arrays();
     printf("%d passed, %d failed\n", checks - failures, failures);
     return failures ? 1 : 0;
