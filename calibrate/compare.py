@@ -184,10 +184,14 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
     factors = sweep_factors(points)
     curve_specs = {L: [_curve_spec(c, f) for f in factors] for L, c in centres.items()}
     baselines = _baseline_specs(pred)
-    # one measurement of every distinct grid, interleaved
+    # one measurement of every distinct grid, interleaved; built in this order, so that the
+    # sweep's memory budget (calibrate.sweep.MAX_SWEEP_TOTAL_BYTES) drops the points farthest
+    # from each depth's centre, not a whole depth
     unique: list[GridSpec] = []
     index: dict[GridSpec, int] = {}
-    for spec in [chosen, *baselines.values(), *(s for specs in curve_specs.values() for s in specs)]:
+    by_distance = sorted(((abs(math.log(f)), n, specs[j]) for n, (L, specs) in enumerate(curve_specs.items())
+                          for j, f in enumerate(factors)), key=lambda t: t[:2])
+    for spec in [chosen, *baselines.values(), *(t[2] for t in by_distance)]:
         if spec not in index:
             index[spec] = len(unique)
             unique.append(spec)

@@ -4,6 +4,7 @@ the measured minimum inside the sweep, the plot, and bad input."""
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -123,6 +124,38 @@ def test_two_level_sweep_scales_top_and_subgrids():
     tops = [p["resolution"] for p in curve["points"]]
     assert tops[0] < tops[1] < tops[2]
     assert all(p["subgrids"] > 0 for p in curve["points"])
+
+
+def test_the_memory_budget_drops_the_farthest_points_of_every_depth(monkeypatch):
+    """Grids are built the prediction and baselines first, then each depth's points from its
+    centre out: a budget that runs out at the sweep's ends skips both depths' outer points,
+    not the last depth's whole curve."""
+    import calibrate.sweep
+
+    seen = []
+    real = calibrate.sweep.sweep
+
+    def recording(scene, specs, *args, **kw):
+        rows = real(scene, specs, *args, **kw)
+        seen.append((list(specs), rows))
+        return rows
+
+    monkeypatch.setattr(calibrate.sweep, "sweep", recording)
+    kw = dict(ratio=RATIO, levels="auto", points=5, ray_count=64, rounds=1, min_time=1e-4, refine_rounds=0, builds=1)
+    full = compare_scene("cylinder196", **kw)
+    specs, rows = seen[-1]
+    outer = {tuple(p["resolution"]) + (p["levels"],) for c in full["curves"] for p in c["points"]
+             if abs(abs(math.log(p["factor"])) - math.log(4.0)) < 1e-9}
+    key = [tuple(s.top) + (1 if s.kind == "uniform" else s.depth,) for s in specs]
+    first_outer = min(i for i, k in enumerate(key) if k in outer)
+    assert all(k in outer for k in key[first_outer:])  # the outer points are built last
+    monkeypatch.setattr(calibrate.sweep, "MAX_SWEEP_TOTAL_BYTES", sum(r["memory_bytes"] for r in rows[:first_outer]) - 1)
+    r = compare_scene("cylinder196", **kw)
+    assert [c["levels"] for c in r["curves"]] == [1, 2]
+    for curve in r["curves"]:
+        kept = sorted(round(p["factor"], 6) for p in curve["points"] if p.get("median_ns"))
+        dropped = sorted(round(p["factor"], 6) for p in curve["points"] if p.get("skipped"))
+        assert kept == [0.5, 1.0, 2.0] and dropped == [0.25, 4.0], (curve["levels"], kept, dropped)
 
 
 def test_a_predicted_grid_over_the_budget_is_one_line_exit_2(monkeypatch, capsys):
