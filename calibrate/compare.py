@@ -184,14 +184,14 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
     factors = sweep_factors(points)
     curve_specs = {L: [_curve_spec(c, f) for f in factors] for L, c in centres.items()}
     baselines = _baseline_specs(pred)
-    # one measurement of every distinct grid, interleaved; built in this order, so that the
-    # sweep's memory budget (calibrate.sweep.MAX_SWEEP_TOTAL_BYTES) drops the points farthest
-    # from each depth's centre, not a whole depth
+    # one measurement of every distinct grid, interleaved; the curves built coarse to fine,
+    # the depths side by side, so that the sweep's memory budget
+    # (calibrate.sweep.MAX_SWEEP_TOTAL_BYTES) drops the finest (largest) points of every
+    # depth, not the last depths' whole curves
     unique: list[GridSpec] = []
     index: dict[GridSpec, int] = {}
-    by_distance = sorted(((abs(math.log(f)), n, specs[j]) for n, (L, specs) in enumerate(curve_specs.items())
-                          for j, f in enumerate(factors)), key=lambda t: t[:2])
-    for spec in [chosen, *baselines.values(), *(t[2] for t in by_distance)]:
+    coarse_first = [specs[j] for j in range(len(factors)) for specs in curve_specs.values()]
+    for spec in [chosen, *baselines.values(), *coarse_first]:
         if spec not in index:
             index[spec] = len(unique)
             unique.append(spec)

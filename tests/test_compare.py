@@ -4,7 +4,6 @@ the measured minimum inside the sweep, the plot, and bad input."""
 from __future__ import annotations
 
 import json
-import math
 
 import numpy as np
 import pytest
@@ -126,9 +125,9 @@ def test_two_level_sweep_scales_top_and_subgrids():
     assert all(p["subgrids"] > 0 for p in curve["points"])
 
 
-def test_the_memory_budget_drops_the_farthest_points_of_every_depth(monkeypatch):
-    """Grids are built the prediction and baselines first, then each depth's points from its
-    centre out: a budget that runs out at the sweep's ends skips both depths' outer points,
+def test_the_memory_budget_drops_the_finest_points_of_every_depth(monkeypatch):
+    """Grids are built the prediction and baselines first, then the curves coarse to fine
+    with the depths side by side: a budget that runs out skips both depths' finest points,
     not the last depth's whole curve."""
     import calibrate.sweep
 
@@ -144,18 +143,18 @@ def test_the_memory_budget_drops_the_farthest_points_of_every_depth(monkeypatch)
     kw = dict(ratio=RATIO, levels="auto", points=5, ray_count=64, rounds=1, min_time=1e-4, refine_rounds=0, builds=1)
     full = compare_scene("cylinder196", **kw)
     specs, rows = seen[-1]
-    outer = {tuple(p["resolution"]) + (p["levels"],) for c in full["curves"] for p in c["points"]
-             if abs(abs(math.log(p["factor"])) - math.log(4.0)) < 1e-9}
+    finest = {tuple(p["resolution"]) + (p["levels"],) for c in full["curves"] for p in c["points"]
+              if p["factor"] == pytest.approx(4.0)}
     key = [tuple(s.top) + (1 if s.kind == "uniform" else s.depth,) for s in specs]
-    first_outer = min(i for i, k in enumerate(key) if k in outer)
-    assert all(k in outer for k in key[first_outer:])  # the outer points are built last
-    monkeypatch.setattr(calibrate.sweep, "MAX_SWEEP_TOTAL_BYTES", sum(r["memory_bytes"] for r in rows[:first_outer]) - 1)
+    first = min(i for i, k in enumerate(key) if k in finest)
+    assert all(k in finest for k in key[first:])  # the finest points are built last
+    monkeypatch.setattr(calibrate.sweep, "MAX_SWEEP_TOTAL_BYTES", sum(r["memory_bytes"] for r in rows[:first]) - 1)
     r = compare_scene("cylinder196", **kw)
     assert [c["levels"] for c in r["curves"]] == [1, 2]
     for curve in r["curves"]:
-        kept = sorted(round(p["factor"], 6) for p in curve["points"] if p.get("median_ns"))
-        dropped = sorted(round(p["factor"], 6) for p in curve["points"] if p.get("skipped"))
-        assert kept == [0.5, 1.0, 2.0] and dropped == [0.25, 4.0], (curve["levels"], kept, dropped)
+        kept = [round(p["factor"], 6) for p in curve["points"] if p.get("median_ns")]
+        dropped = [round(p["factor"], 6) for p in curve["points"] if p.get("skipped")]
+        assert kept == [0.25, 0.5, 1.0, 2.0] and dropped == [4.0], (curve["levels"], kept, dropped)
 
 
 def test_a_predicted_grid_over_the_budget_is_one_line_exit_2(monkeypatch, capsys):
