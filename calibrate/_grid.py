@@ -105,6 +105,21 @@ def _as_array(value, name: str, shape: str) -> np.ndarray:
         raise ValueError(f"{name} must have shape {shape}, got {why}") from None
 
 
+def _subgrid_table(value, name: str, rows: int, row_is: str) -> np.ndarray:
+    """A table of explicit subgrid resolutions checked: ``rows`` rows of three whole numbers in
+    [0, 2^31 - 1], a row all zeros (no subgrid) or all positive; as contiguous int32."""
+    table = _as_array(value, name, f"({rows}, 3)")
+    if table.shape != (rows, 3) or not np.issubdtype(table.dtype, np.integer):
+        raise ValueError(f"{name} must be whole numbers of shape ({rows}, 3), one row per {row_is}, "
+                         f"got {table.shape} {table.dtype}")
+    if table.min(initial=0) < 0 or table.max(initial=0) > 2**31 - 1:
+        raise ValueError(f"{name} must be between 0 (no subgrid) and 2^31 - 1")
+    partial = (table == 0).any(axis=1) & (table != 0).any(axis=1)
+    if partial.any():
+        raise ValueError(f"{name} row {int(np.argmax(partial))} mixes zero and non-zero axes")
+    return np.ascontiguousarray(table, dtype=np.int32)
+
+
 def intersector_code(name: str) -> int:
     """The kernel code for an intersector name ('watertight' or 'moller-trumbore')."""
     key = _INTERSECTOR_ALIASES.get(str(name).lower(), str(name).lower())
@@ -584,16 +599,7 @@ class Grid:
         sub = None
         if subgrid_resolutions is not None:
             ncell = res[0] * res[1] * res[2]
-            sub = _as_array(subgrid_resolutions, "subgrid_resolutions", f"({ncell}, 3)")
-            if sub.shape != (ncell, 3) or not np.issubdtype(sub.dtype, np.integer):
-                raise ValueError(f"subgrid_resolutions must be whole numbers of shape ({ncell}, 3), one row per "
-                                 f"top-level cell, got {sub.shape} {sub.dtype}")
-            if sub.min(initial=0) < 0 or sub.max(initial=0) > 2**31 - 1:
-                raise ValueError("subgrid_resolutions must be between 0 (no subgrid) and 2^31 - 1")
-            partial = (sub == 0).any(axis=1) & (sub != 0).any(axis=1)
-            if partial.any():
-                raise ValueError(f"subgrid_resolutions row {int(np.argmax(partial))} mixes zero and non-zero axes")
-            sub = np.ascontiguousarray(sub, dtype=np.int32)
+            sub = _subgrid_table(subgrid_resolutions, "subgrid_resolutions", ncell, "top-level cell")
             if levels < 2:
                 raise ValueError("subgrid_resolutions needs levels >= 2")
         sub2 = None
@@ -602,16 +608,7 @@ class Grid:
                 raise ValueError("subgrid_resolutions2 needs subgrid_resolutions and levels >= 3")
             full = (sub > 0).all(axis=1)
             rows = int(np.prod(sub[full].astype(np.int64), axis=1).sum())
-            sub2 = _as_array(subgrid_resolutions2, "subgrid_resolutions2", f"({rows}, 3)")
-            if sub2.shape != (rows, 3) or not np.issubdtype(sub2.dtype, np.integer):
-                raise ValueError(f"subgrid_resolutions2 must be whole numbers of shape ({rows}, 3), one row per "
-                                 f"cell of the depth-1 subgrids, got {sub2.shape} {sub2.dtype}")
-            if sub2.min(initial=0) < 0 or sub2.max(initial=0) > 2**31 - 1:
-                raise ValueError("subgrid_resolutions2 must be between 0 (no subgrid) and 2^31 - 1")
-            partial = (sub2 == 0).any(axis=1) & (sub2 != 0).any(axis=1)
-            if partial.any():
-                raise ValueError(f"subgrid_resolutions2 row {int(np.argmax(partial))} mixes zero and non-zero axes")
-            sub2 = np.ascontiguousarray(sub2, dtype=np.int32)
+            sub2 = _subgrid_table(subgrid_resolutions2, "subgrid_resolutions2", rows, "cell of the depth-1 subgrids")
         return cls._build(scene, res, intersector=intersector, mailbox=mailbox, insertion=insertion,
                           levels=int(levels), threshold=int(threshold), level_scale=scales,
                           level_exponent=exps, subgrid_resolutions=sub, rule_max_axis=rule_max_axis,
