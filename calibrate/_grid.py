@@ -650,24 +650,31 @@ class Grid:
         o, d = _check_rays(origins, directions)
         return _kernels.intersect(self._capsule, o, d)
 
-    def count(self, origins, directions, hits: bool = False, visits: bool = False):
+    def count(self, origins, directions, hits: bool = False, visits: bool = False, changes: bool = False):
         """Per-ray work from the instrumented twin.
 
         Returns ``(steps, tests, subgrids)``, each (n,) uint32: cells visited at
         every level, triangle tests, subgrids entered.  With ``hits=True``,
         ``(t, prim)`` come first: the same hits as :meth:`intersect`.  With
-        ``visits=True``, the occupied cells entered come last: the cells holding
+        ``visits=True``, the occupied cells entered follow: the cells holding
         triangles that each ray's walk tested, at every level (a cell holding a
-        subgrid is not one; its own cells are), part of ``steps``.  One walk
+        subgrid is not one; its own cells are), part of ``steps``.  With
+        ``changes=True``, the occupancy changes come last: the cells of each walk
+        (the top grid's or a subgrid's) empty after a non-empty one or non-empty
+        after an empty one, the cell before a walk's first counting as non-empty
+        (a cell holding a subgrid is non-empty); at most ``steps``.  One walk
         counts them all.
         """
         hits = _flag(hits, "hits")
         visits = _flag(visits, "visits")
+        changes = _flag(changes, "changes")
         o, d = _check_rays(origins, directions)
-        t, prim, steps, tests, subgrids, n_visits = _kernels.count(self._capsule, o, d)
+        t, prim, steps, tests, subgrids, n_visits, n_changes = _kernels.count(self._capsule, o, d)
         out = (t, prim) if hits else ()
         out += (steps, tests, subgrids)
-        return out + (n_visits,) if visits else out
+        if visits:
+            out += (n_visits,)
+        return out + (n_changes,) if changes else out
 
     def count_visits(self, origins, directions) -> np.ndarray:
         """Occupied cells entered per ray, (n,) uint32: :meth:`count`'s last result with ``visits=True``."""

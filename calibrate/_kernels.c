@@ -310,16 +310,16 @@ static PyObject *py_count(PyObject *self, PyObject *args)
     }
     gc_grid *g = get_grid(cap);
     npy_intp n = PyArray_DIM(o, 0);
-    PyArrayObject *out[6] = {NULL, NULL, NULL, NULL, NULL, NULL};
-    const int types[6] = {NPY_FLOAT64, NPY_INT32, NPY_UINT32, NPY_UINT32, NPY_UINT32, NPY_UINT32};
+    PyArrayObject *out[7] = {NULL, NULL, NULL, NULL, NULL, NULL, NULL};
+    const int types[7] = {NPY_FLOAT64, NPY_INT32, NPY_UINT32, NPY_UINT32, NPY_UINT32, NPY_UINT32, NPY_UINT32};
     int ok = g != NULL;
-    for (int i = 0; i < 6 && ok; ++i) {
+    for (int i = 0; i < 7 && ok; ++i) {
         out[i] = (PyArrayObject *)PyArray_SimpleNew(1, &n, types[i]);
         ok = out[i] != NULL;
     }
     if (!ok) {
         Py_DECREF(o), Py_DECREF(d);
-        for (int i = 0; i < 6; ++i) {
+        for (int i = 0; i < 7; ++i) {
             Py_XDECREF(out[i]);
         }
         return NULL;
@@ -329,16 +329,17 @@ static PyObject *py_count(PyObject *self, PyObject *args)
     Py_BEGIN_ALLOW_THREADS st = gc_count(g, (int64_t)n, PyArray_DATA(o), PyArray_DATA(d),
                                          PyArray_DATA(out[0]), PyArray_DATA(out[1]),
                                          PyArray_DATA(out[2]), PyArray_DATA(out[3]),
-                                         PyArray_DATA(out[4]), PyArray_DATA(out[5]), err);
+                                         PyArray_DATA(out[4]), PyArray_DATA(out[5]),
+                                         PyArray_DATA(out[6]), err);
     Py_END_ALLOW_THREADS Py_DECREF(o);
     Py_DECREF(d);
     if (st != GC_OK) {
-        for (int i = 0; i < 6; ++i) {
+        for (int i = 0; i < 7; ++i) {
             Py_DECREF(out[i]);
         }
         return raise_status(st, err);
     }
-    return Py_BuildValue("(NNNNNN)", out[0], out[1], out[2], out[3], out[4], out[5]);
+    return Py_BuildValue("(NNNNNNN)", out[0], out[1], out[2], out[3], out[4], out[5], out[6]);
 }
 
 static PyObject *py_bench(PyObject *self, PyObject *args)
@@ -596,7 +597,7 @@ static PyMethodDef methods[] = {
     {"top_counts", py_top_counts, METH_VARARGS, "top_counts(grid) -> (nz, ny, nx) int64"},
     {"intersect", py_intersect, METH_VARARGS, "intersect(grid, origins, directions) -> (t, prim)"},
     {"count", py_count, METH_VARARGS,
-     "count(grid, origins, directions) -> (t, prim, steps, tests, subgrids, visits)"},
+     "count(grid, origins, directions) -> (t, prim, steps, tests, subgrids, visits, changes)"},
     {"mesh_topology", py_mesh_topology, METH_VARARGS,
      "mesh_topology(vertices, faces) -> (watertight, distinct positions)"},
     {"bench", py_bench, METH_VARARGS,

@@ -35,6 +35,8 @@ Schema (version :data:`SCHEMA_VERSION`), one JSON object::
                                                  #   lines its batch fetched from beyond the cache
          "visits": int,                          # optional: occupied cells entered (<= steps)
          "hits": int,                            # optional: rays that found a hit (<= rays)
+         "changes": int,                         # optional, recorded and not fitted: the walks'
+                                                 #   occupancy changes (<= steps; Grid.count)
          ...extra keys kept}
       ],
       "meta": {...},                    # free-form (tool version, budget, wall time, ...);
@@ -288,6 +290,13 @@ def _validate_measurement(m, where: str) -> None:
         if _is_number(obj["steps"]) and v > obj["steps"]:
             _fail(f"{where}.visits", f"{v:g} occupied cells entered but only {obj['steps']:g} cells stepped: "
                                      "visits are part of the steps")
+    if "changes" in obj:
+        v = _finite(obj["changes"], f"{where}.changes")
+        if v < 0 or not v.is_integer():
+            _fail(f"{where}.changes", f"must be a whole number of cells >= 0, got {v:g}")
+        if _is_number(obj["steps"]) and v > obj["steps"]:
+            _fail(f"{where}.changes", f"{v:g} occupancy changes but only {obj['steps']:g} cells stepped: "
+                                      "a change is a cell stepped into")
     if "hits" in obj:
         v = _finite(obj["hits"], f"{where}.hits")
         if v < 0 or not v.is_integer():

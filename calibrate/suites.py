@@ -98,6 +98,7 @@ class Config:
     memory_bytes: int = 0
     visits: int = 0
     hits: int = 0
+    changes: int = 0
 
     def record(self) -> dict:
         """The JSON record of this configuration (without timings)."""
@@ -105,7 +106,7 @@ class Config:
                     resolution=self.resolution, intersector=self.intersector, ray_set=self.ray_set,
                     rays=int(self.rays), steps=int(self.steps), tests=int(self.tests),
                     subgrids=int(self.subgrids), memory_bytes=int(self.memory_bytes),
-                    visits=int(self.visits), hits=int(self.hits))
+                    visits=int(self.visits), hits=int(self.hits), changes=int(self.changes))
 
 
 def _res_label(res) -> str:
@@ -116,14 +117,14 @@ def _config(name, kind, suite, scene_name, res_label, intersector, grid: Grid, o
             copies=()) -> Config:
     """The configuration of ``grid`` on rays (o, d); ``copies``: more builds of the same grid,
     timed in turn with it (:class:`calibrate.protocol.Copies`)."""
-    t, _, steps, tests, subgrids, visits = grid.count(o, d, hits=True, visits=True)  # one walk
+    t, _, steps, tests, subgrids, visits, changes = grid.count(o, d, hits=True, visits=True, changes=True)  # one walk
     runs = [g.timed_batch(o, d, clock=TIMING_CLOCK) for g in (grid, *copies)]
     return Config(name=name, kind=kind, suite=suite, scene=scene_name, resolution=res_label,
                   intersector=intersector, rays=int(o.shape[0]), steps=int(steps.sum(dtype=np.int64)),
                   tests=int(tests.sum(dtype=np.int64)), subgrids=int(subgrids.sum(dtype=np.int64)),
                   run=runs[0] if len(runs) == 1 else Copies(runs), ray_set=ray_set,
                   memory_bytes=int(grid.info["memory_bytes"]), visits=int(visits.sum(dtype=np.int64)),
-                  hits=int(np.count_nonzero(np.isfinite(t))))
+                  hits=int(np.count_nonzero(np.isfinite(t))), changes=int(changes.sum(dtype=np.int64)))
 
 
 def isolated_configs(intersector: str, seed: int = 0) -> list[Config]:

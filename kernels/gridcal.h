@@ -161,14 +161,19 @@ gc_status gc_intersect(const gc_grid *grid, int64_t n, const double *origins,
                        const double *directions, double *t, int32_t *prim, char *err);
 
 /* The instrumented twin: same hits, plus per ray the cells visited (all levels),
- * the triangle tests performed, the subgrids entered and the occupied cells
+ * the triangle tests performed, the subgrids entered, the occupied cells
  * entered (the cells holding triangles that the walk tested, at every level; a
- * cell holding a subgrid is not one of them, its own cells are).  Any of the
- * count arrays may be NULL. */
+ * cell holding a subgrid is not one of them, its own cells are) and the
+ * occupancy changes: the cells of a walk (top grid or subgrid) that are empty
+ * after a non-empty one or non-empty after an empty one, the cell before a
+ * walk's first counting as non-empty (a cell holding a subgrid is non-empty).
+ * Where a walk passes from empty cells to occupied ones the branch that decides
+ * whether a cell is tested goes the other way (docs/calibration.md, "One T_step
+ * for every scene").  Any of the count arrays may be NULL. */
 gc_status gc_count(const gc_grid *grid, int64_t n, const double *origins,
                    const double *directions, double *t, int32_t *prim,
                    uint32_t *steps, uint32_t *tests, uint32_t *subgrids, uint32_t *visits,
-                   char *err);
+                   uint32_t *changes, char *err);
 
 /* Timed batch: trace the n rays `loops` times with the timed twin and return the
  * elapsed wall time (CLOCK_MONOTONIC, ns) around all loops and a checksum of every

@@ -32,7 +32,7 @@ typedef struct {
 } gc_mail;
 
 typedef struct {
-    uint32_t steps, tests, subgrids, visits;
+    uint32_t steps, tests, subgrids, visits, changes;
 } gc_counts;
 
 static void gc_mail_next_ray(gc_mail *m)
@@ -296,7 +296,7 @@ gc_status gc_intersect(const gc_grid *g, int64_t n, const double *origins, const
 
 gc_status gc_count(const gc_grid *g, int64_t n, const double *origins, const double *directions,
                    double *t, int32_t *prim, uint32_t *steps, uint32_t *tests, uint32_t *subgrids,
-                   uint32_t *visits, char *err)
+                   uint32_t *visits, uint32_t *changes, char *err)
 {
     gc_status st = gc_check_rays(n, origins, directions, err);
     if (st != GC_OK) {
@@ -310,7 +310,7 @@ gc_status gc_count(const gc_grid *g, int64_t n, const double *origins, const dou
     gc_ray r;
     gc_hit h;
     for (int64_t k = 0; k < n; ++k) {
-        gc_counts cnt = {0, 0, 0, 0};
+        gc_counts cnt = {0, 0, 0, 0, 0};
         gc_ray_prepare(&r, origins + 3 * k, directions + 3 * k);
         if (g->intersector == GC_WATERTIGHT) {
             trace_counted_wt(g, &r, &h, mail, &cnt);
@@ -334,6 +334,9 @@ gc_status gc_count(const gc_grid *g, int64_t n, const double *origins, const dou
         }
         if (visits) {
             visits[k] = cnt.visits;
+        }
+        if (changes) {
+            changes[k] = cnt.changes;
         }
     }
     free(m.stamp);

@@ -102,6 +102,10 @@ GC_TW_ATTR static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, con
     static const uint8_t next_axis[8] = {2, 1, 2, 1, 2, 1, 0, 0};
 #endif
     double t_enter = ta;
+#if GC_TW_COUNT
+    /* occupancy changes along this walk: the cell before the first counts as occupied */
+    uint32_t prev_occupied = 1;
+#endif
     for (;;) {
 #if GC_MASKED_DDA
         const __m128d mx = _mm_and_pd(_mm_cmple_sd(vtx, vty), _mm_cmple_sd(vtx, vtz));
@@ -124,6 +128,11 @@ GC_TW_ATTR static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, con
         const gc_cell cell = cells[idx];
 #if GC_TW_COUNT
         cnt->steps++;
+        {
+            const uint32_t occupied = cell.count != 0;
+            cnt->changes += occupied != prev_occupied;
+            prev_occupied = occupied;
+        }
 #endif
         /* The next cell along the ray, and the first of its triangles, start
          * loading while this cell is tested: a cell's triangles lie at a place

@@ -94,6 +94,8 @@ def test_run_writes_a_valid_calibration(small_suite, tmp_path):
     # every in-context record carries its grid's bytes and its lines beyond the cache
     ctx = [m for m in cal["measurements"] if m["kind"] == "in_context"]
     assert all(m["memory_bytes"] > 0 and m["misses"] >= 0 for m in ctx)
+    # and its walks' occupancy changes, recorded for analysis (not a term of the fit)
+    assert all(0 <= m["changes"] <= m["steps"] for m in cal["measurements"]) and sum(m["changes"] for m in ctx) > 0
     assert cal["meta"]["cache_bytes"] > 0
     # the cache the memory effect is counted against: one of the sizes tried, the best scored
     tried = cal["meta"]["cache_candidates"]

@@ -55,7 +55,8 @@ def test_scene_rows_fit_each_scene_alone_and_report_the_calibrations_residuals()
             rays = 1000
             ns = rays * (40.0 + t_step * s + t_int * t)
             recs.append(dict(kind="in_context", ray_set="isotropic", scene=scene, resolution=f"{j + 2}x{j + 2}x{j + 2}",
-                             rays=rays, steps=int(rays * s), tests=int(rays * t), subgrids=0, values_ns=[ns] * 3))
+                             rays=rays, steps=int(rays * s), tests=int(rays * t), subgrids=0, values_ns=[ns] * 3,
+                             changes=rays * j))
     # a nested grid and another ray set are left out
     recs.append(dict(recs[0], resolution="L2 3x3x3"))
     recs.append(dict(recs[0], ray_set="camera"))
@@ -67,6 +68,7 @@ def test_scene_rows_fit_each_scene_alone_and_report_the_calibrations_residuals()
         assert row["grids"] == 6 and row["local"]["t_step_ns"] == pytest.approx(t_step, rel=0.01)
         assert row["local"]["t_int_ns"] == pytest.approx(t_int, rel=0.02)
         assert np.all(np.diff(row["steps_per_ray"]) > 0)  # coarse to fine
+        assert row["changes_per_ray"] == pytest.approx(list(range(6)))
     # the sphere is the calibration's own: no residual; the cylinder's residuals rise with its steps
     assert max(abs(x) for x in rows["sphere"]["residuals"]) < 0.01
     res = rows["cylinder"]["residuals"]

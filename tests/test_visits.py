@@ -112,6 +112,71 @@ def test_an_empty_grid_has_no_visits_and_a_nested_grid_counts_only_cells_that_ho
     assert np.all((visits > 0) == (tests > 0))
 
 
+def _brute_changes(grid: Grid, occupied: np.ndarray, o, d, t_hit):
+    """Per ray, the occupancy changes along the cells its walk enters before its hit (every cell
+    by a slab test, in order of entry; the cell before the first counts as occupied), and whether
+    the ray is clear of ties (as :func:`_brute_visits`)."""
+    everything = np.ones_like(occupied, dtype=bool)
+    _, clear = _brute_visits(grid, everything, o, d, t_hit)
+    lo = np.asarray(grid.info["box_lo"], dtype=np.float64)
+    hi = np.asarray(grid.info["box_hi"], dtype=np.float64)
+    n = np.asarray(grid.resolution, dtype=np.int64)
+    cell = (hi - lo) / n
+    iz, iy, ix = np.nonzero(everything)
+    c_lo = lo + np.stack([ix, iy, iz], axis=1) * cell
+    c_hi = c_lo + cell
+    occ = occupied[iz, iy, ix]
+    out = np.zeros(o.shape[0], dtype=np.int64)
+    for k in range(o.shape[0]):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv = 1.0 / d[k]
+            ta = max(np.nanmax(np.minimum((lo - o[k]) * inv, (hi - o[k]) * inv)), 0.0)
+            tb = np.nanmin(np.maximum((lo - o[k]) * inv, (hi - o[k]) * inv))
+            t0 = np.nanmax(np.minimum((c_lo - o[k]) * inv, (c_hi - o[k]) * inv), axis=1)
+            t1 = np.nanmin(np.maximum((c_lo - o[k]) * inv, (c_hi - o[k]) * inv), axis=1)
+        if not ta < tb:
+            continue
+        a, b = np.maximum(t0, ta), np.minimum(t1, tb)
+        entered = (b > a) & (a < t_hit[k])
+        seq = occ[entered][np.argsort(a[entered], kind="stable")].astype(np.int64)
+        out[k] = int(np.count_nonzero(np.diff(np.concatenate([[1], seq]))))
+    return out, clear
+
+
+@pytest.mark.parametrize("i", range(3))
+def test_the_kernel_counts_the_occupancy_changes_along_each_walk(i):
+    """The changes of occupancy along a walk (empty after non-empty, or the other way; the cell
+    before the first counting as non-empty) against a brute-force walk of every cell."""
+    scene = _scattered(40 + 20 * i, seed=10 + i)
+    grid = Grid.uniform(scene, (5 + i, 6, 7 - i))
+    o, d = isotropic(scene.box_lo, scene.box_hi, 300, seed=10 + i)
+    t, _, steps, _, _, changes = grid.count(o, d, hits=True, changes=True)
+    assert np.array_equal(grid.count(o, d, visits=True, changes=True)[-1], changes)
+    occupied = grid.top_counts() > 0
+    want, clear = _brute_changes(grid, occupied, o, d, t)
+    assert clear.mean() > 0.9
+    np.testing.assert_array_equal(changes[clear], want[clear])
+    assert np.all(changes <= steps) and changes.sum() > 0
+
+
+def test_occupancy_changes_on_empty_full_and_nested_grids():
+    """An empty grid: one change a ray (its first cell is empty); a grid whose every cell holds a
+    triangle: none; a nested grid: each walk counted from its own start, a subgrid's cell
+    non-empty."""
+    o, d = isotropic(np.zeros(3), np.ones(3), 256, seed=0)
+    empty = empty_grid(np.zeros(3), np.ones(3), (6, 6, 6), "watertight")
+    np.testing.assert_array_equal(empty.count(o, d, changes=True)[-1], np.ones(256))
+    scene = _scattered(400, seed=3)
+    full = Grid.uniform(scene, (2, 2, 2))
+    assert (full.top_counts() > 0).all()
+    o, d = isotropic(scene.box_lo, scene.box_hi, 256, seed=2)
+    assert not full.count(o, d, changes=True)[-1].any()
+    nested = Grid.nested(scene, levels=2, resolution=(2, 2, 2))
+    steps, _, subgrids, changes = nested.count(o, d, changes=True)
+    # every top cell holds a subgrid (non-empty): the changes are the subgrids' own
+    assert np.all(changes <= steps - subgrids) and changes.sum() > 0
+
+
 # -- the model --------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("name, rel", [("sphere", 0.15), ("scattered-compact", 0.05), ("cylinder1996", 0.15)])
@@ -402,6 +467,29 @@ def test_t_visit_round_trips_and_bad_visit_counts_are_rejected(planted, tmp_path
         bad = json.loads(json.dumps(cal))
         bad["measurements"][0]["visits"] = value
         with pytest.raises(ValueError, match=r"measurements\[0\]\.visits: .*" + message):
+            calfile.validate(bad)
+
+
+def test_occupancy_changes_are_kept_unfitted_and_bad_counts_are_rejected(planted, tmp_path):
+    """A measurement's ``changes`` round-trips and is not a term of the fit: the same
+    constants with and without it; bad counts are named."""
+    _, _, cal = planted
+    withc = json.loads(json.dumps(cal))
+    for m in withc["measurements"]:
+        m["changes"] = int(m["steps"]) // 3
+    path = tmp_path / "cal.json"
+    calfile.save(path, withc)
+    back = calfile.load(path)
+    assert [m["changes"] for m in back["measurements"]] == [m["changes"] for m in withc["measurements"]]
+    assert "changes" not in calfile.design_from_measurements(back["measurements"], "in_context")
+    a = calfile.refit(back, seed=0, optional=ALL)["constants"]
+    b = calfile.refit(cal, seed=0, optional=ALL)["constants"]
+    assert a["t_step_ns"]["median"] == pytest.approx(b["t_step_ns"]["median"], rel=1e-12)
+    for value, message in ((-1, "whole number of cells"), (2.5, "whole number of cells"), (float("nan"), "finite"),
+                           (cal["measurements"][0]["steps"] + 1, "a change is a cell stepped into")):
+        bad = json.loads(json.dumps(withc))
+        bad["measurements"][0]["changes"] = value
+        with pytest.raises(ValueError, match=r"measurements\[0\]\.changes: .*" + message):
             calfile.validate(bad)
 
 

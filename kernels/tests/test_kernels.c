@@ -174,7 +174,7 @@ static int64_t compare_with_brute(const mesh_buf *mb, const gc_build_params *p, 
             *pc = malloc((size_t)n * sizeof(int32_t));
     uint32_t *steps = malloc((size_t)n * sizeof(uint32_t)), *tests = malloc((size_t)n * sizeof(uint32_t)),
              *subs = malloc((size_t)n * sizeof(uint32_t));
-    CHECK(gc_count(g, n, o, d, tc, pc, steps, tests, subs, NULL, err) == GC_OK, "%s: count: %s", label, err);
+    CHECK(gc_count(g, n, o, d, tc, pc, steps, tests, subs, NULL, NULL, err) == GC_OK, "%s: count: %s", label, err);
     /* the timed twin on every sign stage this host runs, each equal to the
      * instrumented twin (SSE2) ray for ray; the host's best runs last and is
      * compared with brute force below */
@@ -431,7 +431,7 @@ static void test_refusals(void)
     double o[3] = {-1, 0.5, 0.5}, d[3] = {1, 0, 0}, t;
     int32_t pr;
     uint32_t steps;
-    CHECK(gc_count(g, 1, o, d, &t, &pr, &steps, NULL, NULL, NULL, err) == GC_OK && pr == -1 && steps == 4,
+    CHECK(gc_count(g, 1, o, d, &t, &pr, &steps, NULL, NULL, NULL, NULL, err) == GC_OK && pr == -1 && steps == 4,
           "empty grid: ray along x should visit 4 cells, visited %u", steps);
     d[0] = 0;
     CHECK(gc_intersect(g, 1, o, d, &t, &pr, err) == GC_ERR_ARGUMENT, "zero direction accepted");
@@ -691,7 +691,9 @@ static void test_unused_vertices(void)
 /* Occupied cells entered: two small triangles in cells 0 and 2 of a 4x1x1 grid
  * over [0,4]x[0,1]x[0,1], each in the plane x = cell + 0.5 over y, z in [0.1, 0.3].
  * A ray along x that misses them steps 4 cells and enters the 2 occupied ones; one
- * that hits the first stops in cell 0, having entered 1.  The unit cube's 12
+ * that hits the first stops in cell 0, having entered 1.  Occupancy changes: 3 for
+ * the first (occupied, empty, occupied, empty), 0 for the second, 4 for a ray along
+ * -x that misses (its first cell empty after the "occupied" before it).  The unit cube's 12
  * triangles over 8 corners have 8 distinct positions, and so have its 36 corners
  * given one by one. */
 static void test_visits_and_positions(void)
@@ -711,14 +713,19 @@ static void test_visits_and_positions(void)
     if (!g) {
         return;
     }
-    const double o[2][3] = {{-1.0, 0.8, 0.8}, {-1.0, 0.15, 0.15}}, d[2][3] = {{1, 0, 0}, {1, 0, 0}};
-    uint32_t steps[2] = {0, 0}, visits[2] = {9, 9};
-    CHECK(gc_count(g, 2, &o[0][0], &d[0][0], NULL, NULL, steps, NULL, NULL, visits, err) == GC_OK, "count: %s",
-          err);
-    CHECK(steps[0] == 4 && visits[0] == 2, "a missing ray: %u steps and %u visits, want 4 and 2", steps[0],
-          visits[0]);
-    CHECK(steps[1] == 1 && visits[1] == 1, "a hitting ray: %u steps and %u visits, want 1 and 1", steps[1],
-          visits[1]);
+    const double o[3][3] = {{-1.0, 0.8, 0.8}, {-1.0, 0.15, 0.15}, {5.0, 0.8, 0.8}};
+    const double d[3][3] = {{1, 0, 0}, {1, 0, 0}, {-1, 0, 0}};
+    uint32_t steps[3] = {0, 0, 0}, visits[3] = {9, 9, 9}, changes[3] = {9, 9, 9};
+    CHECK(gc_count(g, 3, &o[0][0], &d[0][0], NULL, NULL, steps, NULL, NULL, visits, changes, err) == GC_OK,
+          "count: %s", err);
+    /* cells occupied, empty, occupied, empty along +x; the cell before the first counts as occupied */
+    CHECK(steps[0] == 4 && visits[0] == 2 && changes[0] == 3,
+          "a missing ray: %u steps, %u visits and %u changes, want 4, 2 and 3", steps[0], visits[0], changes[0]);
+    CHECK(steps[1] == 1 && visits[1] == 1 && changes[1] == 0,
+          "a hitting ray: %u steps, %u visits and %u changes, want 1, 1 and 0", steps[1], visits[1], changes[1]);
+    CHECK(steps[2] == 4 && visits[2] == 2 && changes[2] == 4,
+          "a missing ray along -x: %u steps, %u visits and %u changes, want 4, 2 and 4", steps[2], visits[2],
+          changes[2]);
     gc_grid_free(g);
 
     int wt = -1;

@@ -14,7 +14,10 @@ same rays) by relative least squares:
 the hits, the occupied cells entered, which vary little along one scene's series).
 Printed per scene: the local T_step, T_int and r, their relative RMS misfit, and
 the calibration's own residuals (measured / predicted by the ray set's fitted
-constants - 1) from the coarsest grid to the finest.
+constants - 1) from the coarsest grid to the finest; and, where the records carry
+them (calibrations made since 2026-12-05), the walks' occupancy changes per ray
+(:meth:`calibrate.Grid.count`), which rise with the resolution where a scene's
+residuals do.
 
 When the local fits are close (a few per cent) and their T_step differ between
 scenes, one T_step cannot describe them all: the residuals of the calibration then
@@ -83,6 +86,8 @@ def scene_rows(cal: dict, ray_set: str) -> list[dict]:
         row = dict(scene=scene, grids=len(mine), resolutions=[r["resolution"] for r in mine],
                    steps_per_ray=steps.tolist(), tests_per_ray=tests.tolist(), ns_per_ray=time.tolist(),
                    residuals=[float(np.median(r["values_ns"]) / predicted_ns(constants, r) - 1.0) for r in mine])
+        if all("changes" in r for r in mine):
+            row["changes_per_ray"] = (np.array([r["changes"] for r in mine]) / rays).tolist()
         if len(mine) >= MIN_GRIDS:
             row["local"] = local_fit(steps, tests, time)
         out.append(row)
@@ -117,6 +122,9 @@ def main(argv=None) -> int:
                     if loc else f"{'-':>7s} {'-':>7s} {'-':>6s} {'-':>7s}")
             res = " ".join(f"{100 * x:+.0f}" for x in row["residuals"])
             print(f"  {row['scene']:20s} {row['grids']:5d} {head}   {res} %")
+            if "changes_per_ray" in row:
+                ch = " ".join(f"{x:.2f}" for x in row["changes_per_ray"])
+                print(f"  {'':20s} {'':5s} {'':7s} {'':7s} {'':6s} {'':7s}   occupancy changes a ray: {ch}")
         result[ray_set] = rows
     if args.out:
         atomic_write_text(Path(args.out), json.dumps(result, indent=1))
