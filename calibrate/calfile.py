@@ -257,6 +257,17 @@ def _validate_resolution(x, where: str, depth: int = 0) -> None:
     _fail(where, "must be a positive integer, a non-empty array of them (per axis or per level), a string or null")
 
 
+def _check_cells_stepped(obj, where, key, what, why):
+    """An optional count of cells ``key`` of a measurement: a whole number >= 0, at most its steps."""
+    if key not in obj:
+        return
+    v = _finite(obj[key], f"{where}.{key}")
+    if v < 0 or not v.is_integer():
+        _fail(f"{where}.{key}", f"must be a whole number of cells >= 0, got {v:g}")
+    if _is_number(obj["steps"]) and v > obj["steps"]:
+        _fail(f"{where}.{key}", f"{v:g} {what} but only {obj['steps']:g} cells stepped: {why}")
+
+
 def _validate_measurement(m, where: str) -> None:
     obj = _object(m, where)
     for key in ("kind", "scene", "resolution", "intersector", "rays", "steps", "tests", "values_ns"):
@@ -283,20 +294,8 @@ def _validate_measurement(m, where: str) -> None:
             _fail(f"{where}.memory_bytes", f"must be a whole number of bytes >= 0, got {v:g}")
     if "misses" in obj and _finite(obj["misses"], f"{where}.misses") < 0:
         _fail(f"{where}.misses", f"negative count {obj['misses']:g}")
-    if "visits" in obj:
-        v = _finite(obj["visits"], f"{where}.visits")
-        if v < 0 or not v.is_integer():
-            _fail(f"{where}.visits", f"must be a whole number of cells >= 0, got {v:g}")
-        if _is_number(obj["steps"]) and v > obj["steps"]:
-            _fail(f"{where}.visits", f"{v:g} occupied cells entered but only {obj['steps']:g} cells stepped: "
-                                     "visits are part of the steps")
-    if "changes" in obj:
-        v = _finite(obj["changes"], f"{where}.changes")
-        if v < 0 or not v.is_integer():
-            _fail(f"{where}.changes", f"must be a whole number of cells >= 0, got {v:g}")
-        if _is_number(obj["steps"]) and v > obj["steps"]:
-            _fail(f"{where}.changes", f"{v:g} occupancy changes but only {obj['steps']:g} cells stepped: "
-                                      "a change is a cell stepped into")
+    _check_cells_stepped(obj, where, "visits", "occupied cells entered", "visits are part of the steps")
+    _check_cells_stepped(obj, where, "changes", "occupancy changes", "a change is a cell stepped into")
     if "hits" in obj:
         v = _finite(obj["hits"], f"{where}.hits")
         if v < 0 or not v.is_integer():

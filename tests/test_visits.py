@@ -49,30 +49,37 @@ def _scattered(n: int, seed: int) -> Scene:
 
 # -- the kernel's count ---------------------------------------------------------------------------
 
-def _brute_visits(grid: Grid, occupied: np.ndarray, o, d, t_hit):
-    """Per ray, the occupied cells whose box the ray's walk interval enters before its hit, by a
-    slab test against every occupied cell; and whether the ray is clear of ties (a cell it only
-    grazes, or a hit on a cell's face), where rounding may decide either way."""
+def _cell_intervals(grid: Grid, cells: np.ndarray, o, d):
+    """Per ray k, (ta, tb, a, b): the ray's interval in the grid box (t >= 0) and, for each cell
+    of ``cells`` (a (nz, ny, nx) mask, in np.nonzero order), the part of it inside that cell's
+    box (entered where b > a), by slab tests; None for a ray that misses the box."""
     lo = np.asarray(grid.info["box_lo"], dtype=np.float64)
     hi = np.asarray(grid.info["box_hi"], dtype=np.float64)
     n = np.asarray(grid.resolution, dtype=np.int64)
     cell = (hi - lo) / n
-    iz, iy, ix = np.nonzero(occupied)
+    iz, iy, ix = np.nonzero(cells)
     c_lo = lo + np.stack([ix, iy, iz], axis=1) * cell
     c_hi = c_lo + cell
-    counts = np.zeros(o.shape[0], dtype=np.int64)
-    clear = np.ones(o.shape[0], dtype=bool)
     for k in range(o.shape[0]):
         with np.errstate(divide="ignore", invalid="ignore"):
             inv = 1.0 / d[k]
-            ta = np.nanmax(np.minimum((lo - o[k]) * inv, (hi - o[k]) * inv))
+            ta = max(np.nanmax(np.minimum((lo - o[k]) * inv, (hi - o[k]) * inv)), 0.0)
             tb = np.nanmin(np.maximum((lo - o[k]) * inv, (hi - o[k]) * inv))
             t0 = np.nanmax(np.minimum((c_lo - o[k]) * inv, (c_hi - o[k]) * inv), axis=1)
             t1 = np.nanmin(np.maximum((c_lo - o[k]) * inv, (c_hi - o[k]) * inv), axis=1)
-        ta = max(ta, 0.0)
-        if not ta < tb:
+        yield (ta, tb, np.maximum(t0, ta), np.minimum(t1, tb)) if ta < tb else None
+
+
+def _brute_visits(grid: Grid, occupied: np.ndarray, o, d, t_hit):
+    """Per ray, the occupied cells whose box the ray's walk interval enters before its hit, by a
+    slab test against every occupied cell; and whether the ray is clear of ties (a cell it only
+    grazes, or a hit on a cell's face), where rounding may decide either way."""
+    counts = np.zeros(o.shape[0], dtype=np.int64)
+    clear = np.ones(o.shape[0], dtype=bool)
+    for k, walk in enumerate(_cell_intervals(grid, occupied, o, d)):
+        if walk is None:
             continue
-        a, b = np.maximum(t0, ta), np.minimum(t1, tb)
+        ta, tb, a, b = walk
         scale = tb - ta
         entered = (b > a) & (a < t_hit[k])
         counts[k] = int(entered.sum())
@@ -118,25 +125,12 @@ def _brute_changes(grid: Grid, occupied: np.ndarray, o, d, t_hit):
     the ray is clear of ties (as :func:`_brute_visits`)."""
     everything = np.ones_like(occupied, dtype=bool)
     _, clear = _brute_visits(grid, everything, o, d, t_hit)
-    lo = np.asarray(grid.info["box_lo"], dtype=np.float64)
-    hi = np.asarray(grid.info["box_hi"], dtype=np.float64)
-    n = np.asarray(grid.resolution, dtype=np.int64)
-    cell = (hi - lo) / n
-    iz, iy, ix = np.nonzero(everything)
-    c_lo = lo + np.stack([ix, iy, iz], axis=1) * cell
-    c_hi = c_lo + cell
-    occ = occupied[iz, iy, ix]
+    occ = occupied[np.nonzero(everything)]
     out = np.zeros(o.shape[0], dtype=np.int64)
-    for k in range(o.shape[0]):
-        with np.errstate(divide="ignore", invalid="ignore"):
-            inv = 1.0 / d[k]
-            ta = max(np.nanmax(np.minimum((lo - o[k]) * inv, (hi - o[k]) * inv)), 0.0)
-            tb = np.nanmin(np.maximum((lo - o[k]) * inv, (hi - o[k]) * inv))
-            t0 = np.nanmax(np.minimum((c_lo - o[k]) * inv, (c_hi - o[k]) * inv), axis=1)
-            t1 = np.nanmin(np.maximum((c_lo - o[k]) * inv, (c_hi - o[k]) * inv), axis=1)
-        if not ta < tb:
+    for k, walk in enumerate(_cell_intervals(grid, everything, o, d)):
+        if walk is None:
             continue
-        a, b = np.maximum(t0, ta), np.minimum(t1, tb)
+        _, _, a, b = walk
         entered = (b > a) & (a < t_hit[k])
         seq = occ[entered][np.argsort(a[entered], kind="stable")].astype(np.int64)
         out[k] = int(np.count_nonzero(np.diff(np.concatenate([[1], seq]))))
