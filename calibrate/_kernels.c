@@ -310,16 +310,17 @@ static PyObject *py_count(PyObject *self, PyObject *args)
     }
     gc_grid *g = get_grid(cap);
     npy_intp n = PyArray_DIM(o, 0);
-    PyArrayObject *out[7] = {NULL, NULL, NULL, NULL, NULL, NULL, NULL};
-    const int types[7] = {NPY_FLOAT64, NPY_INT32, NPY_UINT32, NPY_UINT32, NPY_UINT32, NPY_UINT32, NPY_UINT32};
+    enum { N_OUT = 7 }; /* t, prim, steps, tests, subgrids, visits, changes */
+    PyArrayObject *out[N_OUT] = {NULL};
+    const int types[N_OUT] = {NPY_FLOAT64, NPY_INT32, NPY_UINT32, NPY_UINT32, NPY_UINT32, NPY_UINT32, NPY_UINT32};
     int ok = g != NULL;
-    for (int i = 0; i < 7 && ok; ++i) {
+    for (int i = 0; i < N_OUT && ok; ++i) {
         out[i] = (PyArrayObject *)PyArray_SimpleNew(1, &n, types[i]);
         ok = out[i] != NULL;
     }
     if (!ok) {
         Py_DECREF(o), Py_DECREF(d);
-        for (int i = 0; i < 7; ++i) {
+        for (int i = 0; i < N_OUT; ++i) {
             Py_XDECREF(out[i]);
         }
         return NULL;
@@ -334,7 +335,7 @@ static PyObject *py_count(PyObject *self, PyObject *args)
     Py_END_ALLOW_THREADS Py_DECREF(o);
     Py_DECREF(d);
     if (st != GC_OK) {
-        for (int i = 0; i < 7; ++i) {
+        for (int i = 0; i < N_OUT; ++i) {
             Py_DECREF(out[i]);
         }
         return raise_status(st, err);

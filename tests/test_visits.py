@@ -70,22 +70,28 @@ def _cell_intervals(grid: Grid, cells: np.ndarray, o, d):
         yield (ta, tb, np.maximum(t0, ta), np.minimum(t1, tb)) if ta < tb else None
 
 
+def _clear_of_ties(walk, t_hit) -> bool:
+    """Whether a ray's walk (:func:`_cell_intervals`) has no tie: a cell it only grazes, or a hit
+    on a cell's face, where rounding may decide either way."""
+    ta, tb, a, b = walk
+    scale = tb - ta
+    grazing = np.abs(b - a) < 1e-9 * scale
+    at_face = np.isfinite(t_hit) & (np.abs(a - t_hit) < 1e-9 * scale)
+    return not np.any((b >= a - 1e-9 * scale) & (grazing | at_face))
+
+
 def _brute_visits(grid: Grid, occupied: np.ndarray, o, d, t_hit):
     """Per ray, the occupied cells whose box the ray's walk interval enters before its hit, by a
-    slab test against every occupied cell; and whether the ray is clear of ties (a cell it only
-    grazes, or a hit on a cell's face), where rounding may decide either way."""
+    slab test against every occupied cell; and whether the ray is clear of ties
+    (:func:`_clear_of_ties`)."""
     counts = np.zeros(o.shape[0], dtype=np.int64)
     clear = np.ones(o.shape[0], dtype=bool)
     for k, walk in enumerate(_cell_intervals(grid, occupied, o, d)):
         if walk is None:
             continue
-        ta, tb, a, b = walk
-        scale = tb - ta
-        entered = (b > a) & (a < t_hit[k])
-        counts[k] = int(entered.sum())
-        grazing = np.abs(b - a) < 1e-9 * scale
-        at_face = np.isfinite(t_hit[k]) & (np.abs(a - t_hit[k]) < 1e-9 * scale)
-        clear[k] = not np.any((b >= a - 1e-9 * scale) & (grazing | at_face))
+        _, _, a, b = walk
+        counts[k] = int(((b > a) & (a < t_hit[k])).sum())
+        clear[k] = _clear_of_ties(walk, t_hit[k])
     return counts, clear
 
 
@@ -122,11 +128,11 @@ def test_an_empty_grid_has_no_visits_and_a_nested_grid_counts_only_cells_that_ho
 def _brute_changes(grid: Grid, occupied: np.ndarray, o, d, t_hit):
     """Per ray, the occupancy changes along the cells its walk enters before its hit (every cell
     by a slab test, in order of entry; the cell before the first counts as occupied), and whether
-    the ray is clear of ties (as :func:`_brute_visits`)."""
+    the ray is clear of ties (:func:`_clear_of_ties`, over every cell)."""
     everything = np.ones_like(occupied, dtype=bool)
-    _, clear = _brute_visits(grid, everything, o, d, t_hit)
     occ = occupied[np.nonzero(everything)]
     out = np.zeros(o.shape[0], dtype=np.int64)
+    clear = np.ones(o.shape[0], dtype=bool)
     for k, walk in enumerate(_cell_intervals(grid, everything, o, d)):
         if walk is None:
             continue
@@ -134,6 +140,7 @@ def _brute_changes(grid: Grid, occupied: np.ndarray, o, d, t_hit):
         entered = (b > a) & (a < t_hit[k])
         seq = occ[entered][np.argsort(a[entered], kind="stable")].astype(np.int64)
         out[k] = int(np.count_nonzero(np.diff(np.concatenate([[1], seq]))))
+        clear[k] = _clear_of_ties(walk, t_hit[k])
     return out, clear
 
 

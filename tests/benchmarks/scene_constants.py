@@ -36,11 +36,9 @@ from pathlib import Path
 import numpy as np
 
 from calibrate import calfile
+from calibrate import fit as F
 from calibrate._io import UserError, atomic_write_text
 
-#: (constant, count) pairs of the cost, in the calibration's column names.
-TERMS = (("t_setup_ns", "rays"), ("t_step_ns", "steps"), ("t_int_ns", "tests"), ("t_sub_ns", "subgrids"),
-         ("t_mem_ns", "misses"), ("t_visit_ns", "visits"), ("t_hit_ns", "hits"))
 #: Fewest uniform grids of one scene for a local fit (three unknowns, and a misfit to report).
 MIN_GRIDS = 5
 
@@ -63,7 +61,7 @@ def local_fit(steps, tests, time) -> dict:
 def predicted_ns(constants: dict, record: dict) -> float:
     """A record's batch time by the medians of ``constants`` (name -> {median, ...})."""
     return sum(constants[name]["median"] * float(record.get(count, 0) or 0)
-               for name, count in TERMS if constants.get(name))
+               for name, count in zip(F.CONSTANT_NAMES, F.COUNT_KEYS) if constants.get(name))
 
 
 def _uniform(record) -> bool:
@@ -72,8 +70,7 @@ def _uniform(record) -> bool:
 
 def scene_rows(cal: dict, ray_set: str) -> list[dict]:
     """One row per scene of ``ray_set``: the local fit and the calibration's residuals, coarse to fine."""
-    fits = cal.get("by_rays") or {}
-    constants = (fits.get(ray_set) or cal)["constants"]
+    constants = calfile.fit_for_rays(cal, ray_set)[0]["constants"]
     recs = [r for r in calfile.apply_drift(cal["measurements"])
             if r["kind"] == "in_context" and r.get("ray_set") == ray_set and r["values_ns"] and _uniform(r)]
     out = []
@@ -108,11 +105,11 @@ def main(argv=None) -> int:
     sets = args.rays or sorted((cal.get("by_rays") or {}).keys()) or ["isotropic"]
     result = {}
     for ray_set in sets:
-        fitted = (cal.get("by_rays") or {}).get(ray_set)
-        consts = (fitted or cal)["constants"]
+        entry, fitted_on = calfile.fit_for_rays(cal, ray_set)
+        consts = entry["constants"]
         print(f"{ray_set} rays: the calibration's T_step {consts['t_step_ns']['median']:.2f} ns, "
               f"T_int {consts['t_int_ns']['median']:.3f} ns, r {consts['ratio']['median']:.3f}"
-              + ("" if fitted else " (pooled: the ray set was not fitted alone)"))
+              + ("" if fitted_on else " (pooled: the ray set was not fitted alone)"))
         rows = scene_rows(cal, ray_set)
         print(f"  {'scene':20s} {'grids':>5s} {'T_step':>7s} {'T_int':>7s} {'r':>6s} {'misfit':>7s}   "
               "calibration's residuals, coarse to fine")
