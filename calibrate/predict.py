@@ -754,29 +754,43 @@ def _nested_levels(counts):
 def _terminated_nested(counts, stats, traversed_fraction):
     """(steps, tests, subgrids, occupied cells entered) per ray of a nested plan's model counts
     (:func:`models.nested.nested_counts`, no termination) for rays covering ``traversed_fraction``
-    of the distance: the steps scaled by :func:`models.general.cell_fraction`, the visits by
-    :func:`models.general.terminated_visits`.
+    of the distance: the steps scaled by :func:`models.general.cell_fraction`, the occupied
+    leaf cells entered by :func:`models.general.terminated_visits`, and the tests as those
+    cells hold them.
 
-    In a two-level grid a subgrid is an occupied top cell, so the subgrids a ray enters stop
-    as occupied cells do (:func:`models.general.terminated_visits` of the subgrids) where
-    that stops them sooner than the distance does, and the tests, all made inside subgrids,
-    with them: on a closed scan a ray that hits stops in about the first subgrid it enters,
-    where the distance alone would have it enter a second on the way out (armadillo at
-    12x14x11 over 5^3: the kernel's 1.47 subgrids and 18.3 tests a ray; 2.12 and 38.8 by
-    the distance, 1.50 and 27.5 so).  Deeper grids keep the distance's scaling: their
-    count mixes the subgrids of every level, which a ray enters one inside another (with
-    the surface's count applied to all of them, armadillo's three-level plan was priced at
-    461 ns a ray and measured at 783)."""
+    Tests: every test is made in an occupied leaf cell, and by Crofton a ray entering one
+    meets the structure's tests per occupied leaf cell entered (``tests / visits`` without
+    termination); rays that stop keep that figure, so the tests are that times the leaf
+    cells entered.  For separate triangles this is the distance's scaling again; on a
+    surface it counts the tests where the rays stop, which the distance does not: on the
+    cylinders, whose wall runs along the box, a ray that hits stops in the first wall cell
+    it enters and makes half the tests of a line that crosses the box, where the distance
+    (14% of it covered) has it make a seventh (`cylinder19996`'s three-level plan at
+    11x11x56: 18.5 tests a ray by the distance, 36.7 so, 48.8 by the kernel).  Over the
+    nested plans of the 18 scenes of ``compare_all.py`` (docs/compare.md, "Nested grids'
+    tests where rays stop") the median error against the kernel's count is 28% so and 36%
+    by the distance, the worst undercount -25% against -62%; it counts too many where rays
+    stop in cells holding few of the triangles (Sponza's and the tray's walls, +234-343%),
+    whose nested plans cost more than one level either way.
+
+    Subgrids: in a two-level grid a subgrid is an occupied top cell, so the subgrids a ray
+    enters stop as occupied cells do (:func:`models.general.terminated_visits` of the
+    subgrids) where that stops them sooner than the distance does: on a closed scan a ray
+    that hits stops in about the first subgrid it enters, where the distance alone would
+    have it enter a second on the way out (armadillo at 12x14x11 over 5^3: the kernel's 1.47
+    subgrids a ray, 2.12 by the distance, 1.50 so).  Deeper grids keep the distance's
+    scaling: their count mixes the subgrids of every level, which a ray enters one inside
+    another (with the surface's count applied to all of them, armadillo's three-level plan
+    was priced at 461 ns a ray and measured at 783)."""
     g = cell_fraction(traversed_fraction, counts.steps)
     subgrids = g * counts.subgrids
-    tests = g * counts.tests
+    visits = terminated_visits(counts.visits, stats.separate_fraction, g)
+    tests = counts.tests / counts.visits * visits if counts.visits > 0 else g * counts.tests
     if counts.levels == 2 and counts.subgrids > 0:
         by_surface = float(terminated_visits(counts.subgrids, stats.separate_fraction, g))
         if by_surface < subgrids:
-            tests *= by_surface / subgrids
             subgrids = by_surface
-    return (g * counts.steps, tests, subgrids,
-            terminated_visits(counts.visits, stats.separate_fraction, g))
+    return g * counts.steps, tests, subgrids, visits
 
 
 def _analytic_nested(scene, stats, k: Constants, L, mailbox):
