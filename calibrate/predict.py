@@ -770,8 +770,8 @@ def _terminated_nested(counts, stats, traversed_fraction):
     nested plans of the 18 scenes of ``compare_all.py`` (docs/compare.md, "Nested grids'
     tests where rays stop") the median error against the kernel's count is 28% so and 36%
     by the distance, the worst undercount -25% against -62%; it counts too many where rays
-    stop in cells holding few of the triangles (Sponza's and the tray's walls, +234-343%),
-    whose nested plans cost more than one level either way.
+    stop in cells holding few of the triangles (Sponza's three levels +343%, the tray's
+    +244%), whose nested plans cost more than one level either way.
 
     Subgrids: in a two-level grid a subgrid is an occupied top cell, so the subgrids a ray
     enters stop as occupied cells do (:func:`models.general.terminated_visits` of the
