@@ -112,7 +112,9 @@ def test_ratio_path_needs_no_calibration(tmp_path, monkeypatch, capsys):
     assert p["cost_t_step"]["median"] == pytest.approx(p["steps_per_ray"] + RATIO * p["tests_per_ray"], rel=1e-12)
 
 
-def test_synthetic_calibration_flows_through(cal_path, capsys):
+def test_synthetic_calibration_flows_through(cal_path, capsys, monkeypatch):
+    # the closed form's plan: the cell-shape search is tested on its own (test_cell_shape_*)
+    monkeypatch.setattr("calibrate.predict.AXIS_MIN_GAIN", math.inf)
     out = _run_json(["cylinder1996", "--calibration", str(cal_path), "--levels", "1"], capsys)
     samples = calfile.samples_by_name(calfile.load(cal_path))
     p = out["predicted"]
@@ -248,7 +250,8 @@ def test_paper_fidelity_reproduces_the_closed_forms(i, r):
                                                                          cyl.stats.extent))
 
 
-def test_analytic_single_level_is_the_models_prediction():
+def test_analytic_single_level_is_the_models_prediction(monkeypatch):
+    monkeypatch.setattr("calibrate.predict.AXIS_MIN_GAIN", math.inf)  # the closed form's plan
     scene = Scene.builtin("room")
     k = resolve_constants(constants=PLANTED_NS)
     out = predict(scene, constants=PLANTED_NS, fidelity="analytic", levels="1")
@@ -358,9 +361,10 @@ def test_a_large_mesh_keeps_the_approximate_fraction(monkeypatch):
     assert "termination (approximate)" in [e["reason"] for e in out["effects"] if e["name"] == "termination"][0]
 
 
-def test_rays_stopping_where_they_enter_the_room_are_counted_without_termination():
+def test_rays_stopping_where_they_enter_the_room_are_counted_without_termination(monkeypatch):
     """The room's walls are its box's faces: every sampled ray stops where it enters, and the plan
     is the one of rays that never stop (the count model alone would refine without bound)."""
+    monkeypatch.setattr("calibrate.predict.AXIS_MIN_GAIN", math.inf)  # the closed form's plan
     scene = Scene.builtin("room")
     st = scene_statistics(scene)
     assert rays_stop_on_entry(st) and st.termination.p_hit == 1.0 and st.termination.fraction < 1e-9
