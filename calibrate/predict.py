@@ -148,8 +148,9 @@ AXIS_SEARCH_SPAN = 16.0
 #: Evaluations of the model's cost the search may spend (about 0.15 ms each).
 AXIS_SEARCH_EVALS = 60
 #: The shaped plan is taken only when the model prices it at least this much below the
-#: near-cubic one (the scans' shaped optima are 0.0-0.4% cheaper in the model and measured
-#: within 1% of it either way; the cylinders' 1.1-12.6%).
+#: near-cubic one: with a default calibration the scans' and soups' shaped optima are 0.0-0.4%
+#: cheaper in the model (four of them timed: within 2% of the near-cubic plan either way),
+#: the cylinders' 1.1-12.6% (timed 2.5-31% faster).
 AXIS_MIN_GAIN = 0.01
 #: Where the cost is flat between two axes (a round cylinder's x and y) the search stops
 #: anywhere along the flat: a pair of axes is given equal cells (their geometric mean) when
