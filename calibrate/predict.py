@@ -779,10 +779,10 @@ def analytic_uniform_plan(stats, k: Constants, mailbox):
     if shape_used:
         res = shaped
         steps, tests, refs, mem, visits = _uniform_counts(stats, res, k, sel.terms)
-        if candidates is not None:  # the posterior's choice runs along the shape taken
-            shaped_cands = {q for sc in SEARCH_SCALES for q in _scaled_with_thin_axes(res, sc)
-                            if max(q) <= MAX_CELLS_PER_AXIS and q[0] * q[1] * q[2] <= MAX_TOTAL_CELLS}
-            candidates = [(q, _uniform_counts(stats, q, k, sel.terms)) for q in sorted(shaped_cands | {res})]
+        # the posterior's choice runs along the shape taken (not the closed form's cubes)
+        shaped_cands = {q for sc in SEARCH_SCALES for q in _scaled_with_thin_axes(res, sc)
+                        if max(q) <= MAX_CELLS_PER_AXIS and q[0] * q[1] * q[2] <= MAX_TOTAL_CELLS}
+        candidates = [(q, _uniform_counts(stats, q, k, sel.terms)) for q in sorted(shaped_cands | {res})]
     plan = dict(levels=_level_dicts_uniform(stats, res, refs), steps=steps, tests=tests, subgrids=0.0,
                 memory_bytes=mem, visits=visits, terms=sel.terms, selection=sel)
     if candidates is not None:

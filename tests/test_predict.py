@@ -250,6 +250,20 @@ def test_paper_fidelity_reproduces_the_closed_forms(i, r):
                                                                          cyl.stats.extent))
 
 
+def test_a_shaped_plans_interval_keeps_its_shape(cal_path, capsys):
+    """A cylinder's plan with cells long along its walls: the posterior's resolution interval is
+    picked among that shape's scalings (the closed form's cubes would not contain the plan)."""
+    out = _run_json(["cylinder1996", "--calibration", str(cal_path), "--levels", "1"], capsys)
+    shape = [e for e in out["effects"] if e["name"] == "cell-shape"]
+    assert len(shape) == 1 and shape[0]["used"]
+    res = np.asarray(out["levels"][0]["resolution"], dtype=np.float64)
+    lo, hi = (np.asarray(r, dtype=np.float64) for r in out["predicted"]["resolution_ci95"])
+    assert np.prod(lo) <= np.prod(res) <= np.prod(hi)
+    for bound in (lo, hi):  # the same per-axis proportions, up to whole cells
+        s = bound / res
+        assert np.all(np.abs(s / s.mean() - 1.0) <= 1.0 / np.minimum(bound, res) + 1e-9), (bound, res)
+
+
 def test_analytic_single_level_is_the_models_prediction(monkeypatch):
     monkeypatch.setattr("calibrate.predict.AXIS_MIN_GAIN", math.inf)  # the closed form's plan
     scene = Scene.builtin("room")
