@@ -395,15 +395,15 @@ def _kernel_cost(scene: Scene, res, seed: int) -> tuple[float, int]:
     """(steps + r tests a ray, references) of the kernel's grid at ``res`` on seeded isotropic rays."""
     grid = Grid.uniform(scene, res)
     o, d = rays.isotropic(scene.box_lo, scene.box_hi, 8192, seed)
-    _, steps, tests = grid.count(o, d)
+    steps, tests, _ = grid.count(o, d)
     return float(steps.mean() + PLANTED_RATIO * tests.mean()), int(grid.info["n_refs"])
 
 
 #: Cylinders whose walls run along z: the search makes their cells longer along z than across,
 #: equal across, and the kernel's counts agree that the shape is cheaper (steps + r tests a ray
-#: at r = 5 on 8,192 isotropic rays: `cylinder1996` at 91x91x171 6.30 against 7.64 at the
+#: at r = 5 on 8,192 isotropic rays: `cylinder1996` at 91x91x171 45.7 against 54.2 at the
 #: closed form's 82x82x407, with 321 k references against 620 k; `cylinder196` at 34x35x68
-#: 2.87 against 3.56 at 30x30x149, 21 k against 37 k).
+#: 20.0 against 23.9 at 30x30x149, 21 k against 37 k).
 SHAPED_CYLINDER_IDS = ["builtin:cylinder196", "builtin:cylinder1996"]
 
 
@@ -424,8 +424,8 @@ def test_cell_shape_of_a_cylinder_follows_its_walls(i, scene_id, monkeypatch):
 @pytest.mark.parametrize("i", range(3))
 def test_cell_shape_of_a_sheet_is_cheaper_in_kernel_counts(i, monkeypatch):
     """A flat sheet in a flat box: where the search changes the shape, the kernel's counts agree
-    (steps + r tests a ray: 1.57 at 477x477x4 against 1.70 at the closed form's 1663x1663x3;
-    2.12 at 160x546x5 against 2.28 at 267x2674x4; 3.38 at 56x704x10 against 3.52 at 67x4096x7)."""
+    (steps + r tests a ray: 10.8 at 477x477x4 against 12.1 at the closed form's 1663x1663x3;
+    14.6 at 160x546x5 against 16.5 at 267x2674x4; 25.1 at 56x704x10 against 26.6 at 67x4096x7)."""
     scene = _sheet(i)
     cubic, shaped, effect = _closed_form_and_shaped(scene, monkeypatch)
     if not effect["used"]:
