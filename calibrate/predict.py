@@ -649,9 +649,30 @@ def _surface_tests_effect(stats, k: Constants, res, terms, steps, tests, mem, vi
            f"(below the {100 * EFFECT_TOLERANCE:g}% tolerance: the resolution is the closed form's)")))
 
 
-def _axis_search(stats, k: Constants, terms, res):
+def _within_caps(res) -> bool:
+    """Whether a resolution keeps to MAX_CELLS_PER_AXIS and MAX_TOTAL_CELLS."""
+    return max(res) <= MAX_CELLS_PER_AXIS and res[0] * res[1] * res[2] <= MAX_TOTAL_CELLS
+
+
+def _priced(stats, res, k: Constants, terms):
+    """(the model's cost, :func:`_uniform_counts`) of a uniform grid at ``res``."""
+    c = _uniform_counts(stats, res, k, terms)
+    return k.cost(c[0], c[1], 0.0, c[3], c[4]), c
+
+
+def _scaled_candidates(stats, k: Constants, terms, res) -> dict:
+    """resolution -> :func:`_priced` of ``res`` scaled by each of SEARCH_SCALES (thin axes floor
+    and ceiling, :func:`_scaled_with_thin_axes`), within the caps."""
+    cands = {}
+    for r in (q for sc in SEARCH_SCALES for q in _scaled_with_thin_axes(res, sc)):
+        if r not in cands and _within_caps(r):
+            cands[r] = _priced(stats, r, k, terms)
+    return cands
+
+
+def _axis_search(stats, k: Constants, terms, res, cost0):
     """The cheapest resolution under the model with each axis's cells searched on its own, from
-    ``res``: (resolution, its cost, the cost of ``res``, evaluations).
+    ``res`` (whose cost is ``cost0``): (resolution, its cost, evaluations).
 
     The near-cubic plans of the closed form and of the scaled search above fit a scene whose
     triangles run every way; a cylinder's walls are long along its axis, so each triangle there
@@ -667,11 +688,9 @@ def _axis_search(stats, k: Constants, terms, res):
     square cells across)."""
 
     def cost(r):
-        c = _uniform_counts(stats, r, k, terms)
-        return k.cost(c[0], c[1], 0.0, c[3], c[4])
+        return _priced(stats, r, k, terms)[0]
 
     res = tuple(int(x) for x in res)
-    cost0 = cost(res)
     x0 = np.log(np.asarray(res, dtype=np.float64))
     lo = np.maximum(0.0, x0 - math.log(AXIS_SEARCH_SPAN))
     hi = np.maximum(lo, np.minimum(math.log(MAX_CELLS_PER_AXIS), x0 + math.log(AXIS_SEARCH_SPAN)))
@@ -695,13 +714,9 @@ def _axis_search(stats, k: Constants, terms, res):
         x = x0
     r = np.exp(x)
     cands = {tuple(max(1, int(v)) for v in c) for c in itertools.product(*[(math.floor(v), math.ceil(v)) for v in r])}
-
-    def fits(c):
-        return max(c) <= MAX_CELLS_PER_AXIS and c[0] * c[1] * c[2] <= MAX_TOTAL_CELLS
-
-    cands = [c for c in cands if fits(c)]
+    cands = [c for c in cands if _within_caps(c)]
     if not cands:
-        return res, cost0, cost0, evals[0]
+        return res, cost0, evals[0]
     best_cost, best = min((cost(c), c) for c in cands)
     ext = np.asarray(stats.extent, dtype=np.float64)
     for i, j in ((0, 1), (1, 2), (0, 2)):
@@ -711,13 +726,13 @@ def _axis_search(stats, k: Constants, terms, res):
         eq = list(best)
         eq[i], eq[j] = (max(1, int(round(ext[a] / cell))) for a in (i, j))
         eq = tuple(eq)
-        if eq != best and fits(eq):
+        if eq != best and _within_caps(eq):
             c_eq = cost(eq)
             if c_eq <= best_cost * (1.0 + AXIS_EQUAL_CELLS_TOLERANCE):
                 best, best_cost = eq, c_eq
     if best_cost >= cost0:
-        return res, cost0, cost0, evals[0]
-    return best, best_cost, cost0, evals[0]
+        return res, cost0, evals[0]
+    return best, best_cost, evals[0]
 
 
 def analytic_uniform_plan(stats, k: Constants, mailbox):
@@ -746,12 +761,7 @@ def analytic_uniform_plan(stats, k: Constants, mailbox):
     if surface is not None:
         effects.append(surface)
     if k.has_memory or k.has_visits or (surface is not None and surface["used"]):
-        cands = {}
-        for r in (q for sc in SEARCH_SCALES for q in _scaled_with_thin_axes(res, sc)):
-            if r in cands or max(r) > MAX_CELLS_PER_AXIS or r[0] * r[1] * r[2] > MAX_TOTAL_CELLS:
-                continue
-            c = _uniform_counts(stats, r, k, sel.terms)
-            cands[r] = (k.cost(c[0], c[1], 0.0, c[3], c[4]), c)
+        cands = _scaled_candidates(stats, k, sel.terms, res)
         best = min(cands, key=lambda r: cands[r][0])
         cost, c = cands[best]
         what = (f"resolution searched from 1/4x to 4x per axis of the optimum without it "
@@ -768,7 +778,8 @@ def analytic_uniform_plan(stats, k: Constants, mailbox):
             res = best
             steps, tests, refs, mem, visits = c
             candidates = [(r, cc[1]) for r, cc in cands.items()]
-    shaped, cost_shaped, cost_cubic, evals = _axis_search(stats, k, sel.terms, res)
+    cost_cubic = k.cost(steps, tests, 0.0, mem, visits)
+    shaped, cost_shaped, evals = _axis_search(stats, k, sel.terms, res, cost_cubic)
     gain = 1.0 - cost_shaped / cost_cubic if cost_cubic > 0 else 0.0
     shape_used = shaped != tuple(int(x) for x in res) and gain >= AXIS_MIN_GAIN
     effects.append(dict(name="cell-shape", used=bool(shape_used), change=float(gain), reason=(
@@ -778,11 +789,11 @@ def analytic_uniform_plan(stats, k: Constants, mailbox):
            f"(below the {100 * AXIS_MIN_GAIN:g}% the shape must gain: the cells stay near cubes)"))))
     if shape_used:
         res = shaped
-        steps, tests, refs, mem, visits = _uniform_counts(stats, res, k, sel.terms)
         # the posterior's choice runs along the shape taken (not the closed form's cubes)
-        shaped_cands = {q for sc in SEARCH_SCALES for q in _scaled_with_thin_axes(res, sc)
-                        if max(q) <= MAX_CELLS_PER_AXIS and q[0] * q[1] * q[2] <= MAX_TOTAL_CELLS}
-        candidates = [(q, _uniform_counts(stats, q, k, sel.terms)) for q in sorted(shaped_cands | {res})]
+        shaped_cands = _scaled_candidates(stats, k, sel.terms, res)
+        shaped_cands.setdefault(res, _priced(stats, res, k, sel.terms))
+        steps, tests, refs, mem, visits = shaped_cands[res][1]
+        candidates = [(q, shaped_cands[q][1]) for q in sorted(shaped_cands)]
     plan = dict(levels=_level_dicts_uniform(stats, res, refs), steps=steps, tests=tests, subgrids=0.0,
                 memory_bytes=mem, visits=visits, terms=sel.terms, selection=sel)
     if candidates is not None:
