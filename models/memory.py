@@ -37,7 +37,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["LINE_BYTES", "STEP_LINES", "TEST_LINES", "miss_fraction", "lines_beyond_cache", "candidate_cache_sizes"]
+__all__ = ["LINE_BYTES", "STEP_LINES", "TEST_LINES", "miss_fraction", "lines_beyond_cache", "candidate_cache_sizes",
+           "weighted_miss_fraction"]
 
 #: Bytes of a cache line.
 LINE_BYTES = 64
@@ -63,6 +64,55 @@ def miss_fraction(memory_bytes, cache_bytes):
     with np.errstate(divide="ignore"):
         out = np.where(f > c, 1.0 - c / np.where(f > 0, f, 1.0), 0.0)
     return out
+
+
+def weighted_miss_fraction(rates, sizes, cache_bytes) -> float:
+    """The share of the bytes read that miss a cache of ``cache_bytes``, when item ``i`` (a cell's
+    record and reference list) of ``sizes[i]`` bytes is read whole at ``rates[i]`` reads per ray
+    (Che's approximation of a least-recently-used cache under independent reads).
+
+    The cache keeps an item read within the last ``T`` rays, ``T`` the characteristic time
+    that fills it: ``sum_i sizes_i (1 - exp(-rates_i T)) = C``; a read misses when the
+    item's last read is older, ``exp(-rates_i T)``, so the share of bytes that miss is
+
+        ``sum_i rates_i sizes_i exp(-rates_i T) / sum_i rates_i sizes_i``.
+
+    With every item read at the same rate (isotropic lines that never stop enter every
+    cell of a uniform grid alike: Crofton) it is :func:`miss_fraction` of the bytes read,
+    ``1 - C / F``; where rates differ, the bytes read often stay cached and the share is
+    lower.  0 when the items read fit the cache or nothing is read.  Pure math: the rates
+    are the caller's (``calibrate.reach`` counts them on a grid and a batch of rays).
+
+    rates : (n,) reads per ray, >= 0.  sizes : (n,) bytes, >= 0.  cache_bytes : > 0.
+    """
+    lam = np.asarray(rates, dtype=np.float64).ravel()
+    b = np.asarray(sizes, dtype=np.float64).ravel()
+    if lam.shape != b.shape:
+        raise ValueError(f"rates and sizes must have the same length, got {lam.size} and {b.size}")
+    if not (np.all(np.isfinite(lam)) and np.all(lam >= 0) and np.all(np.isfinite(b)) and np.all(b >= 0)):
+        raise ValueError("rates and sizes must be finite and >= 0")
+    c = float(cache_bytes)
+    if not (np.isfinite(c) and c > 0):
+        raise ValueError(f"cache_bytes must be a finite number > 0, got {cache_bytes!r}")
+    read = lam > 0
+    lam, b = lam[read], b[read]
+    traffic = float(np.sum(lam * b))
+    if traffic <= 0.0 or float(b.sum()) <= c:
+        return 0.0
+
+    def held(t):  # bytes the cache holds at characteristic time t (rays)
+        return float(np.sum(b * -np.expm1(-lam * t)))
+
+    lo, hi = 0.0, 1.0 / float(lam.max())
+    while held(hi) < c:
+        lo, hi = hi, 2.0 * hi
+    for _ in range(200):  # bisection to the last bit of t
+        mid = 0.5 * (lo + hi)
+        if mid in (lo, hi):
+            break
+        lo, hi = (mid, hi) if held(mid) < c else (lo, mid)
+    t = 0.5 * (lo + hi)
+    return float(np.sum(lam * b * np.exp(-lam * t)) / traffic)
 
 
 def lines_beyond_cache(steps, tests, memory_bytes, cache_bytes):

@@ -1,0 +1,138 @@
+"""What a batch of rays reads of a grid (calibrate/reach.py) and the share of it a cache keeps
+(models.memory.weighted_miss_fraction).
+
+Known answers: with every item read alike the weighted share is the cost model's
+``1 - C/F``; against a simulated least-recently-used cache fed independent reads it is
+within a few hundredths (Che's approximation); the walk enters, ray by ray, the cells the
+instrumented kernel counts as steps.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+
+import numpy as np
+import pytest
+
+from calibrate._grid import Grid, Scene
+from calibrate.rays import isotropic
+from calibrate.reach import cell_bytes, cell_entries, read_miss_fraction
+from models.memory import miss_fraction, weighted_miss_fraction
+
+
+# -- the weighted miss share ----------------------------------------------------------------
+
+@pytest.mark.parametrize("i", range(4))
+def test_items_read_alike_miss_one_minus_c_over_f(i):
+    rng = np.random.default_rng(i)
+    n = int(rng.integers(10, 5000))
+    sizes = rng.uniform(8.0, 4096.0, n)
+    cache = float(sizes.sum()) * rng.uniform(0.05, 0.95)
+    rate = rng.uniform(1e-4, 1.0)
+    got = weighted_miss_fraction(np.full(n, rate), sizes, cache)
+    assert got == pytest.approx(float(miss_fraction(sizes.sum(), cache)), abs=1e-9)
+
+
+def test_what_fits_or_is_never_read_does_not_miss():
+    assert weighted_miss_fraction([0.5, 0.1], [100.0, 200.0], 300.0) == 0.0
+    assert weighted_miss_fraction([0.0, 0.0], [1e6, 1e6], 10.0) == 0.0
+    # an item never read does not take room: the two read ones fit
+    assert weighted_miss_fraction([0.5, 0.5, 0.0], [100.0, 100.0, 1e9], 250.0) == 0.0
+
+
+def test_a_hot_part_that_fits_keeps_the_misses_to_the_cold_rest():
+    """Nine tenths of the reads go to a tenth of the bytes: with room for that tenth and a
+    little more, the share missed is far below the whole grid's 1 - C/F, and it falls as the
+    cache grows."""
+    n = 1000
+    sizes = np.full(n, 1000.0)
+    rates = np.where(np.arange(n) < 100, 0.9 / 100, 0.1 / 900)
+    shares = [weighted_miss_fraction(rates, sizes, c) for c in (1.2e5, 2e5, 4e5, 8e5)]
+    assert shares[0] < 0.25 * float(miss_fraction(sizes.sum(), 1.2e5))
+    assert all(a > b for a, b in zip(shares, shares[1:]))
+
+
+def _lru_miss_share(rates, sizes, cache, reads, seed):
+    """Bytes missed over bytes read by a least-recently-used cache of ``cache`` bytes, fed
+    ``reads`` independent reads drawn by rate (the first tenth warms it up)."""
+    rng = np.random.default_rng(seed)
+    trace = rng.choice(len(rates), size=reads, p=np.asarray(rates) / np.sum(rates))
+    held, used, missed, total = OrderedDict(), 0.0, 0.0, 0.0
+    for k, item in enumerate(trace):
+        counted = k >= reads // 10
+        if item in held:
+            held.move_to_end(item)
+        else:
+            if counted:
+                missed += sizes[item]
+            held[item] = True
+            used += sizes[item]
+            while used > cache:
+                old, _ = held.popitem(last=False)
+                used -= sizes[old]
+        if counted:
+            total += sizes[item]
+    return missed / total
+
+
+@pytest.mark.parametrize("i", range(3))
+def test_the_share_matches_a_simulated_lru_cache(i):
+    rng = np.random.default_rng(100 + i)
+    n = 400
+    sizes = rng.integers(1, 8, n).astype(float) * 64.0
+    rates = rng.pareto(1.0 + i, n) + 1e-3  # from heavily skewed to mildly
+    cache = float(sizes.sum()) * (0.2, 0.35, 0.5)[i]
+    want = _lru_miss_share(rates, sizes, cache, 120_000, seed=i)
+    assert weighted_miss_fraction(rates, sizes, cache) == pytest.approx(want, abs=0.03)
+
+
+@pytest.mark.parametrize("rates, sizes, cache, message", [
+    ([1.0], [1.0, 2.0], 1.0, "same length"),
+    ([-1.0], [1.0], 1.0, "finite and >= 0"),
+    ([np.nan], [1.0], 1.0, "finite and >= 0"),
+    ([1.0], [-2.0], 1.0, "finite and >= 0"),
+    ([1.0], [2.0], 0.0, "cache_bytes"),
+    ([1.0], [2.0], np.inf, "cache_bytes"),
+])
+def test_bad_rates_sizes_and_caches_are_refused(rates, sizes, cache, message):
+    with pytest.raises(ValueError, match=message):
+        weighted_miss_fraction(rates, sizes, cache)
+
+
+# -- the walk -------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("name, resolution", [("sphere", (9, 9, 9)), ("sphere", (23, 22, 23)),
+                                              ("cylinder1996", (6, 6, 29)), ("cylinder1996", (19, 19, 12)),
+                                              ("scattered-skinny", (14, 14, 14)), ("room", (31, 25, 10))])
+def test_the_walk_enters_the_cells_the_kernel_counts_as_steps(name, resolution):
+    scene = Scene.builtin(name)
+    grid = Grid.uniform(scene, resolution)
+    o, d = isotropic(scene.box_lo, scene.box_hi, 2048, seed=len(name) + resolution[2])
+    entries, per_ray = cell_entries(scene, grid, o, d)
+    steps = grid.count(o, d)[0]
+    mismatched = np.count_nonzero(per_ray != steps)
+    assert mismatched <= 2, (mismatched, np.nonzero(per_ray != steps)[0][:5])  # a tie at a corner at most
+    assert entries.sum() == per_ray.sum()
+    assert entries.shape == (resolution[0] * resolution[1] * resolution[2],)
+
+
+def test_rays_that_miss_the_box_enter_nothing_and_a_nested_grid_is_refused():
+    scene = Scene.builtin("cylinder196")
+    grid = Grid.uniform(scene, (4, 4, 16))
+    o = np.array([[5.0, 5.0, -1.0], [0.0, 0.0, -1.0]])
+    d = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    entries, per_ray = cell_entries(scene, grid, o, d)
+    assert per_ray[0] == 0 and per_ray[1] >= 1 and entries.sum() == per_ray[1]
+    with pytest.raises(ValueError, match="uniform"):
+        cell_entries(scene, Grid.nested(scene, 2), o, d)
+
+
+def test_a_grid_that_fits_misses_nothing_and_the_bytes_are_the_kernels():
+    scene = Scene.builtin("sphere")
+    grid = Grid.uniform(scene, (12, 12, 12))
+    o, d = isotropic(scene.box_lo, scene.box_hi, 1024, seed=7)
+    got = read_miss_fraction(scene, grid, o, d, 1 << 30)
+    assert got["weighted"] == 0.0 and got["whole"] == 0.0
+    # the kernel's bytes less its fixed header and one node
+    assert cell_bytes(grid).sum() == pytest.approx(got["memory_bytes"], rel=0.01)
+    assert 0 < got["read_bytes"] <= cell_bytes(grid).sum()
