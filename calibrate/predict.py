@@ -51,10 +51,10 @@ from models.closed_forms import MAX_CELLS_PER_AXIS, MAX_TOTAL_CELLS, cells_to_re
 from models.effects import EFFECT_TOLERANCE, select_effects, termination_fraction
 from models.general import (THIN_AXIS_CELLS, Terms, cell_fraction, expected_refs, predict_uniform, steps_per_ray,
                             stopped_tests_per_ray, terminated_visits, visits_per_ray)
-from models.memory import lines_beyond_cache
+from models.memory import lines_beyond_cache, read_bytes
 from models.nested import MAX_LEVELS, TooManyPairs, clustering_change, nested_counts
 from models.portable import paper_k, paper_level_cells
-from models.stats import TerminationSample, scene_class, triangle_geometry
+from models.stats import TerminationSample, scene_class, triangle_geometry, triangle_sample
 from models.uncertainty import discrete_posterior_optimum, posterior_optimum, summarise
 
 from ._grid import Grid, Scene, resolution_for_cells, triangle_box_overlap
@@ -145,6 +145,14 @@ SEARCH_SCALES = tuple(2.0 ** (j / 8.0) for j in range(-16, 17))
 #: logarithms of the three resolutions), from the plan with cells as near cubes as the box
 #: allows, at most this factor either way per axis.
 AXIS_SEARCH_SPAN = 16.0
+#: Cells longer along one axis are probed first, that axis's cells divided by each of these
+#: (nine evaluations); the search starts again from the cheapest probe when it beats the
+#: start, and may go down to the largest factor along an axis.  The model's cost of a long
+#: cylinder has two valleys: near-cubic cells, and cells a few times longer along the axis
+#: than across, whose references the rays that stop on the wall read from a small part of
+#: the grid (`cylinder19996`: 96x96x12 against 106x106x170, docs/calibration.md, "What rays
+#: read of a big grid"); the search from the near-cubic plan alone stays in the first.
+AXIS_LONG_CELLS = (4.0, 16.0, 64.0)
 #: Evaluations of the model's cost the search may spend (about 0.15 ms each).
 AXIS_SEARCH_EVALS = 60
 #: The shaped plan is taken only when the model prices it at least this much below the
@@ -415,12 +423,14 @@ def scene_statistics(scene: Scene):
 
     ``scene.stats`` (one pass over the mesh, in C) with ``termination`` =
     :func:`sample_termination`: the analytic model's counts then scale by the traversed
-    fraction measured on the real mesh instead of its approximation.  Above
-    TERMINATION_SAMPLE_MAX_TRIANGLES triangles ``scene.stats`` itself (the approximation).
+    fraction measured on the real mesh instead of its approximation (above
+    TERMINATION_SAMPLE_MAX_TRIANGLES triangles, the approximation), and ``triangles`` =
+    :func:`models.stats.triangle_sample`, what the memory term weighs a uniform grid's
+    references by (:func:`models.memory.read_bytes`).
     """
     cached = _SAMPLED_STATS.get(scene)
     if cached is None:
-        cached = scene.stats
+        cached = replace(scene.stats, triangles=triangle_sample(scene.vertices, scene.faces))
         if scene.n_triangles <= TERMINATION_SAMPLE_MAX_TRIANGLES:
             cached = replace(cached, termination=sample_termination(scene))
         _SAMPLED_STATS[scene] = cached
@@ -591,13 +601,26 @@ def _effect_dicts(sel):
 
 
 def _uniform_counts(stats, res, k: Constants, terms):
-    """(steps, tests, references, memory bytes, occupied cells entered) of a uniform grid under the
-    general model (the tests of rays that stop: :func:`models.general.stopped_tests_per_ray`)."""
+    """(steps, tests, references, memory bytes, occupied cells entered, charged bytes) of a uniform
+    grid under the general model (the tests of rays that stop:
+    :func:`models.general.stopped_tests_per_ray`); the charged bytes are what the memory term
+    prices (:func:`charged_bytes`), the memory bytes the grid's."""
     _, steps, _ = predict_uniform(stats, res, k.t_setup, k.t_step, k.t_int, overlap="exact", terms=terms)
     tests = stopped_tests_per_ray(stats, res, terms=terms)
     refs = expected_refs(stats, res, overlap="exact")
-    return (steps, tests, refs, _memory_bytes(res[0] * res[1] * res[2], refs, 1),
-            visits_per_ray(stats, res, terms=terms))
+    mem = _memory_bytes(res[0] * res[1] * res[2], refs, 1)
+    return (steps, tests, refs, mem, visits_per_ray(stats, res, terms=terms),
+            charged_bytes(stats, res, k, steps, tests, mem))
+
+
+def charged_bytes(stats, res, k: Constants, steps, tests, memory_bytes) -> float:
+    """The bytes of a uniform grid at ``res`` the memory term charges (``Constants.lines``): the
+    grid's ``memory_bytes`` weighed by where rays read it, with the scene's triangle sample
+    (:func:`models.memory.read_bytes`); the grid's bytes without a memory term or a sample."""
+    if not k.has_memory:
+        return float(memory_bytes)
+    return read_bytes(stats.triangles, stats.extent, res, steps, tests, memory_bytes, k.cache_bytes,
+                      BYTES_PER_REFERENCE, BYTES_PER_CELL)
 
 
 def _term_effect(name: str, share: float, head: str, what: str) -> dict:
@@ -618,14 +641,19 @@ def _visits_effect(k: Constants, cost: float, visits: float, what: str) -> dict:
                         f"(models.general.visits_per_ray, approximate) at {k.t_visit:.3g} ns each", what)
 
 
-def _memory_effect(k: Constants, steps, tests, memory_bytes, what: str, subgrids=0.0, visits=0.0) -> dict:
+def _memory_effect(k: Constants, steps, tests, memory_bytes, what: str, subgrids=0.0, visits=0.0,
+                   charged=None) -> dict:
     """The memory effect's entry for a plan (``change``: the share of the predicted time its term
     is).  The term is in every predicted time of a calibration with T_mem; the effect is *used*
-    when that share is more than EFFECT_TOLERANCE."""
-    total = k.cost(steps, tests, subgrids, memory_bytes, visits)
-    lines = k.lines(steps, tests, memory_bytes)
+    when that share is more than EFFECT_TOLERANCE.  ``charged``: the bytes the term prices where
+    they are not the grid's (:func:`charged_bytes`)."""
+    priced = memory_bytes if charged is None else charged
+    total = k.cost(steps, tests, subgrids, priced, visits)
+    lines = k.lines(steps, tests, priced)
     share = k.t_mem * lines / total if total > 0 else 0.0
-    return _term_effect("memory", share, f"the grid's {memory_bytes / 2 ** 20:.3g} MiB against the host's "
+    weighed = ("" if charged is None or abs(priced - memory_bytes) <= 1e-9 * memory_bytes else
+               f", weighed by where rays read it as {priced / 2 ** 20:.3g} MiB (models.memory.read_bytes)")
+    return _term_effect("memory", share, f"the grid's {memory_bytes / 2 ** 20:.3g} MiB{weighed} against the host's "
                         f"{k.cache_bytes / 2 ** 20:.3g} MiB cache: {lines:.3g} cache lines per ray from beyond it",
                         what)
 
@@ -657,7 +685,7 @@ def _within_caps(res) -> bool:
 def _priced(stats, res, k: Constants, terms):
     """(the model's cost, :func:`_uniform_counts`) of a uniform grid at ``res``."""
     c = _uniform_counts(stats, res, k, terms)
-    return k.cost(c[0], c[1], 0.0, c[3], c[4]), c
+    return k.cost(c[0], c[1], 0.0, c[5], c[4]), c
 
 
 def _scaled_candidates(stats, k: Constants, terms, res) -> dict:
@@ -682,7 +710,8 @@ def _axis_search(stats, k: Constants, terms, res, cost0):
     960 ns at the near-cubic 96x96x474; docs/compare.md, "Cells shaped to the triangles").
     nlopt's BOBYQA minimises the model's cost over the logarithms of the three resolutions
     (AXIS_SEARCH_SPAN either way, AXIS_SEARCH_EVALS evaluations; the counts are continuous in
-    the cell sizes), then the floors and ceilings of the result are priced and the cheapest
+    the cell sizes), and again from the cheapest of the AXIS_LONG_CELLS probes (one axis's
+    cells fewer) when that beats the first search; then the floors and ceilings of the result are priced and the cheapest
     kept, and where two axes' cells can be made equal for at most AXIS_EQUAL_CELLS_TOLERANCE
     more, they are (the search stops anywhere along a flat direction; a round cylinder gets
     square cells across)."""
@@ -692,7 +721,7 @@ def _axis_search(stats, k: Constants, terms, res, cost0):
 
     res = tuple(int(x) for x in res)
     x0 = np.log(np.asarray(res, dtype=np.float64))
-    lo = np.maximum(0.0, x0 - math.log(AXIS_SEARCH_SPAN))
+    lo = np.maximum(0.0, x0 - math.log(max(AXIS_SEARCH_SPAN, *AXIS_LONG_CELLS)))
     hi = np.maximum(lo, np.minimum(math.log(MAX_CELLS_PER_AXIS), x0 + math.log(AXIS_SEARCH_SPAN)))
     evals = [0]
 
@@ -701,17 +730,27 @@ def _axis_search(stats, k: Constants, terms, res, cost0):
         over = float(np.sum(x)) - math.log(MAX_TOTAL_CELLS)  # past the cap on cells: steeply dearer
         return cost(tuple(np.exp(x))) * (1.0 + 1e3 * max(over, 0.0) ** 2)
 
-    opt = nlopt.opt(nlopt.LN_BOBYQA, 3)
-    opt.set_lower_bounds(lo)
-    opt.set_upper_bounds(hi)
-    opt.set_min_objective(objective)
-    opt.set_maxeval(AXIS_SEARCH_EVALS)
-    opt.set_xtol_rel(1e-3)
-    opt.set_initial_step(math.log(2.0))
-    try:
-        x = opt.optimize(np.clip(x0, lo, hi))
-    except (nlopt.RoundoffLimited, RuntimeError):  # as models.nested's search: keep the start
-        x = x0
+    def search(start):
+        opt = nlopt.opt(nlopt.LN_BOBYQA, 3)
+        opt.set_lower_bounds(lo)
+        opt.set_upper_bounds(hi)
+        opt.set_min_objective(objective)
+        opt.set_maxeval(AXIS_SEARCH_EVALS)
+        opt.set_xtol_rel(1e-3)
+        opt.set_initial_step(math.log(2.0))
+        try:
+            x = opt.optimize(np.clip(start, lo, hi))
+            return x, opt.last_optimum_value()
+        except (nlopt.RoundoffLimited, RuntimeError):  # as models.nested's search: keep the start
+            return start, objective(start, None)
+
+    x, best_value = search(x0)
+    probes = [np.maximum(lo, x0 - math.log(f) * np.eye(3)[i]) for f in AXIS_LONG_CELLS for i in range(3)]
+    value, i_probe = min((objective(p, None), i) for i, p in enumerate(probes))
+    if value < best_value:
+        x_long, long_value = search(probes[i_probe])
+        if long_value < best_value:
+            x = x_long
     r = np.exp(x)
     cands = {tuple(max(1, int(v)) for v in c) for c in itertools.product(*[(math.floor(v), math.ceil(v)) for v in r])}
     cands = [c for c in cands if _within_caps(c)]
@@ -754,10 +793,10 @@ def analytic_uniform_plan(stats, k: Constants, mailbox):
     sel = select_effects(stats, k.t_setup, k.t_step, k.t_int, mailbox=mailbox, termination=True, overlap="exact",
                          levels=1)
     res = sel.resolution
-    steps, tests, refs, mem, visits = _uniform_counts(stats, res, k, sel.terms)
+    steps, tests, refs, mem, visits, charged = _uniform_counts(stats, res, k, sel.terms)
     effects = _effect_dicts(sel)
     candidates = None
-    surface = _surface_tests_effect(stats, k, res, sel.terms, steps, tests, mem, visits)
+    surface = _surface_tests_effect(stats, k, res, sel.terms, steps, tests, charged, visits)
     if surface is not None:
         effects.append(surface)
     if k.has_memory or k.has_visits or (surface is not None and surface["used"]):
@@ -768,7 +807,7 @@ def analytic_uniform_plan(stats, k: Constants, mailbox):
                 f"{_fmt_res(res)}: {_fmt_res(best)}")
         new = []
         if k.has_memory:
-            new.append(_memory_effect(k, c[0], c[1], c[3], what, visits=c[4]))
+            new.append(_memory_effect(k, c[0], c[1], c[3], what, visits=c[4], charged=c[5]))
         if k.has_visits:
             new.append(_visits_effect(k, cost, c[4], what))
         effects.extend(new)
@@ -776,9 +815,9 @@ def analytic_uniform_plan(stats, k: Constants, mailbox):
             surface["reason"] = surface["reason"][:-1] + f"; {what})"
         if any(e["used"] for e in new) or (surface is not None and surface["used"]):
             res = best
-            steps, tests, refs, mem, visits = c
+            steps, tests, refs, mem, visits, charged = c
             candidates = [(r, cc[1]) for r, cc in cands.items()]
-    cost_cubic = k.cost(steps, tests, 0.0, mem, visits)
+    cost_cubic = k.cost(steps, tests, 0.0, charged, visits)
     shaped, cost_shaped, evals = _axis_search(stats, k, sel.terms, res, cost_cubic)
     gain = 1.0 - cost_shaped / cost_cubic if cost_cubic > 0 else 0.0
     shape_used = shaped != tuple(int(x) for x in res) and gain >= AXIS_MIN_GAIN
@@ -792,10 +831,10 @@ def analytic_uniform_plan(stats, k: Constants, mailbox):
         # the posterior's choice runs along the shape taken (not the closed form's cubes)
         shaped_cands = _scaled_candidates(stats, k, sel.terms, res)
         shaped_cands.setdefault(res, _priced(stats, res, k, sel.terms))
-        steps, tests, refs, mem, visits = shaped_cands[res][1]
+        steps, tests, refs, mem, visits, charged = shaped_cands[res][1]
         candidates = [(q, shaped_cands[q][1]) for q in sorted(shaped_cands)]
     plan = dict(levels=_level_dicts_uniform(stats, res, refs), steps=steps, tests=tests, subgrids=0.0,
-                memory_bytes=mem, visits=visits, terms=sel.terms, selection=sel)
+                memory_bytes=mem, charged_bytes=charged, visits=visits, terms=sel.terms, selection=sel)
     if candidates is not None:
         plan["candidates"] = candidates
     return plan, effects
@@ -1047,10 +1086,10 @@ def _simulated_uniform(scene, stats, k: Constants, rays, mailbox):
     st = np.array([r[2] for r in rows])
     te = np.array([r[3] for r in rows])
     vi = np.array([r[4] for r in rows])
-    def mem(scales):  # the grid's bytes at each scale (the model's references)
+    def mem(scales):  # the bytes the memory term charges at each scale (the model's references and counts)
         if not k.has_memory:
             return np.zeros(len(scales))
-        return np.array([float(_uniform_counts(stats, _scaled(base, x), k, Terms(mailbox=mailbox))[3])
+        return np.array([float(_uniform_counts(stats, _scaled(base, x), k, Terms(mailbox=mailbox))[5])
                          for x in scales])
 
     def visits(scales):  # occupied cells entered: the kernel's counts, interpolated in log scale
@@ -1083,6 +1122,7 @@ def _simulated_uniform(scene, stats, k: Constants, rays, mailbox):
     plan = dict(levels=[dict(level=1, resolution=_res_list(res), grids=1, cells=int(cells), references=refs,
                              memory_bytes=int(info["memory_bytes"]))],
                 steps=steps, tests=tests, subgrids=0.0, memory_bytes=int(info["memory_bytes"]), visits=n_visits,
+                charged_bytes=charged_bytes(stats, res, k, steps, tests, int(info["memory_bytes"])),
                 simulation=dict(rays=SIM_RAYS, ray_set=rays, scales=sc.tolist(), steps=st.tolist(),
                                 tests=te.tolist(), visits=vi.tolist(), steps_fit=a.tolist(), tests_fit=b.tolist(),
                                 best_scale=s_best, analytic_resolution=_res_list(base)))
@@ -1192,7 +1232,7 @@ def _baseline_table(stats, k: Constants, terms, hits: float = 0.0):
         out[name] = _res_list(levels[0])
         d = dict(levels=[_res_list(x) for x in levels])
         if len(levels) == 1:
-            steps, tests, _, mem, visits = _uniform_counts(stats, levels[0], k, terms)
+            steps, tests, _, _, visits, mem = _uniform_counts(stats, levels[0], k, terms)
             d.update(steps_per_ray=steps, tests_per_ray=tests,
                      cost_per_ray=k.cost(steps, tests, 0.0, mem, visits, hits))
         detail[name] = d
@@ -1253,7 +1293,7 @@ def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analyt
         notes.append(note)
     steps, tests, subgrids = float(plan["steps"]), float(plan["tests"]), float(plan["subgrids"])
     # the paper fidelity is the talk's model: no memory term, no occupied cells
-    plan_bytes = float(plan["memory_bytes"]) if fidelity != "paper" else 0.0
+    plan_bytes = float(plan.get("charged_bytes", plan["memory_bytes"])) if fidelity != "paper" else 0.0
     visits = float(plan.get("visits", 0.0)) if fidelity != "paper" else 0.0
     # a ray that hits costs T_hit more: the share of isotropic lines that hit the mesh (sampled
     # where the traversed fraction is); the same at every resolution, so no plan depends on it
@@ -1273,9 +1313,9 @@ def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analyt
         # the memory and occupied-cell terms have no closed-form optimum: each posterior sample
         # picks among the searched candidates
         res_c = [r for r, _ in plan["candidates"]]
-        cnt = np.array([c for _, c in plan["candidates"]], dtype=np.float64)  # steps, tests, refs, bytes, visits
-        costs = np.stack([k.cost_samples(c[0], c[1], 0.0, c[3], c[4]) for c in cnt], axis=1)
-        med = np.array([k.cost(c[0], c[1], 0.0, c[3], c[4]) for c in cnt])
+        cnt = np.array([c for _, c in plan["candidates"]], dtype=np.float64)  # :func:`_uniform_counts`
+        costs = np.stack([k.cost_samples(c[0], c[1], 0.0, c[5], c[4]) for c in cnt], axis=1)
+        med = np.array([k.cost(c[0], c[1], 0.0, c[5], c[4]) for c in cnt])
         (i_lo, i_hi), pen = discrete_posterior_optimum(costs, med, [r[0] * r[1] * r[2] for r in res_c])
         predicted["resolution_ci95"] = [_res_list(res_c[i_lo]), _res_list(res_c[i_hi])]
         predicted["uncertainty_penalty"] = pen

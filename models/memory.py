@@ -38,7 +38,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["LINE_BYTES", "STEP_LINES", "TEST_LINES", "miss_fraction", "lines_beyond_cache", "candidate_cache_sizes",
-           "weighted_miss_fraction"]
+           "weighted_miss_fraction", "read_bytes", "READ_RATE_BINS"]
 
 #: Bytes of a cache line.
 LINE_BYTES = 64
@@ -113,6 +113,71 @@ def weighted_miss_fraction(rates, sizes, cache_bytes) -> float:
         lo, hi = (mid, hi) if held(mid) < c else (lo, mid)
     t = 0.5 * (lo + hi)
     return float(np.sum(lam * b * np.exp(-lam * t)) / traffic)
+
+
+#: Bins (in the logarithm of the rate) the sampled triangles' read rates are pooled into
+#: before :func:`weighted_miss_fraction` (pooled, its cost does not grow with the sample).
+READ_RATE_BINS = 48
+
+
+def read_bytes(triangles, extent, resolution, steps, tests, memory_bytes, cache_bytes,
+               reference_bytes: float = 76.0, cell_bytes: float = 8.0) -> float:
+    """The grid bytes the memory term charges a uniform grid: ``memory_bytes`` where the grid fits
+    the cache or nothing says where rays read; beyond it, the size F' whose ``1 - C/F'`` is the
+    share of the bytes read that misses (:func:`weighted_miss_fraction`) when each cell is
+    read as often as rays stop in it.
+
+    Rays stop at the surface, and a cell is entered in proportion to the surface it holds:
+    isotropic lines meet a surface element in proportion to its area (Crofton), and a
+    locally flat surface of normal n crosses a cell of sides c with area ``V_c / (|n| . c)``
+    on average over its offsets (the cell's volume over its width along n).  So every copy
+    of triangle t is read at a rate in proportion to ``1 / sum_i |n_t,i| c_i``, the
+    triangle's ``m_t`` copies (``1 + sum_i ext_i / c_i + sum_i A|n_i| / (c_j c_k)``, as
+    :func:`models.general.expected_refs` counts them) hold ``reference_bytes`` each, and
+    the rates are scaled to the ``tests`` a ray makes; each cell's record (``cell_bytes``)
+    is read at ``steps`` over the cells.  On ``cylinder19996`` the end caps, fans of long
+    chords across the disk, hold 85% of the references at 65x65x12 cells in cells with a
+    36th of the wall's surface: priced this way the grids 12 cells long come out the
+    cheapest, as measured, where the whole grid prices every shape alike
+    (docs/calibration.md, "What rays read of a big grid").  APPROXIMATE: no occlusion (a
+    surface behind another is read as often as an outer one) and no lines that pass
+    through a cell without stopping in it.
+
+    triangles : :class:`models.stats.TriangleSample` or None.  extent : (3,) the grid box's
+    sides.  resolution : (3,) cells.  steps, tests : per ray (the model's).  memory_bytes,
+    cache_bytes : the grid's bytes and the cache's (None: no memory term).
+    """
+    mem = float(memory_bytes)
+    if triangles is None or cache_bytes is None or not mem > float(cache_bytes) or not tests > 0:
+        return mem
+    ext = np.asarray(extent, dtype=np.float64)
+    n = np.asarray(resolution, dtype=np.float64)
+    c = ext / n
+    cc = np.array([c[1] * c[2], c[2] * c[0], c[0] * c[1]])
+    e, p = triangles.extents, triangles.proj_areas
+    copies = triangles.weight * (1.0 + e @ (1.0 / c) + p @ (1.0 / cc))
+    width = p @ c  # A (|n| . c): the triangle's area times the cell's width along its normal
+    area = triangles.areas
+    flat = (width > 0) & (area > 0)
+    if not flat.any():
+        return mem
+    shape = np.zeros_like(width)
+    shape[flat] = area[flat] / width[flat]  # 1 / (|n| . c), a copy's reads up to a common factor
+    rate = tests * shape / float(np.sum(copies * shape))
+    size = reference_bytes * copies
+    read = rate > 0
+    logs = np.log(rate[read])
+    bins = np.minimum(((logs - logs.min()) / max(float(np.ptp(logs)), 1e-12) * READ_RATE_BINS).astype(np.int64),
+                      READ_RATE_BINS - 1)
+    pooled_size = np.bincount(bins, weights=size[read], minlength=READ_RATE_BINS)
+    pooled_rate = np.bincount(bins, weights=(rate * size)[read], minlength=READ_RATE_BINS)
+    keep = pooled_size > 0
+    cells = float(np.prod(n))
+    rates = np.concatenate([pooled_rate[keep] / pooled_size[keep], [max(float(steps), 0.0) / cells]])
+    sizes = np.concatenate([pooled_size[keep], [cell_bytes * cells]])
+    miss = weighted_miss_fraction(rates, sizes, cache_bytes)
+    charged = float(cache_bytes) / (1.0 - miss) if miss < 1.0 else mem
+    return float(min(mem, charged)) if miss > 0.0 else min(mem, float(cache_bytes))
 
 
 def lines_beyond_cache(steps, tests, memory_bytes, cache_bytes):

@@ -311,6 +311,47 @@ class TerminationSample:
                 raise ValueError(f"visits must be a finite number >= 0, got {self.visits!r}")
 
 
+@dataclass(frozen=True, eq=False)
+class TriangleSample:
+    """An evenly strided sample of a mesh's triangles, each standing for ``weight`` of them: what
+    :func:`models.memory.read_bytes` weighs a grid's references by (where rays read them).
+
+    extents : (k, 3) bounding-box extents; proj_areas : (k, 3) areas projected along each
+    axis, ``A |n_i|``; areas : (k,) areas ``A``; weight : triangles per sampled one (>= 1).
+    """
+
+    extents: np.ndarray
+    proj_areas: np.ndarray
+    areas: np.ndarray
+    weight: float
+
+    def __post_init__(self):
+        e = np.asarray(self.extents, dtype=np.float64)
+        p = np.asarray(self.proj_areas, dtype=np.float64)
+        if e.ndim != 2 or e.shape[1] != 3 or p.shape != e.shape or e.shape[0] < 1:
+            raise ValueError(f"extents and proj_areas must both be (k, 3) with k >= 1, got {e.shape} and {p.shape}")
+        a = np.asarray(self.areas, dtype=np.float64)
+        if a.shape != (e.shape[0],):
+            raise ValueError(f"areas must be ({e.shape[0]},), got {a.shape}")
+        if not all(np.all(np.isfinite(x)) and np.all(x >= 0) for x in (e, p, a)):
+            raise ValueError("extents, proj_areas and areas must be finite and >= 0")
+        if not (math.isfinite(self.weight) and self.weight >= 1.0):
+            raise ValueError(f"weight must be a finite number >= 1, got {self.weight!r}")
+
+
+#: Triangles in a :class:`TriangleSample` (:func:`triangle_sample`).
+TRIANGLE_SAMPLE_SIZE = 4096
+
+
+def triangle_sample(vertices, faces, size: int = TRIANGLE_SAMPLE_SIZE) -> TriangleSample:
+    """Every ``ceil(F / size)``-th triangle's extents and projected areas (:class:`TriangleSample`)."""
+    v, f = _check_mesh(vertices, faces)
+    stride = max(1, -(-f.shape[0] // int(size)))
+    geom = triangle_geometry(v, f[::stride])
+    return TriangleSample(extents=geom.ext, proj_areas=geom.proj_area, areas=geom.area,
+                          weight=f.shape[0] / geom.area.shape[0])
+
+
 @dataclass(frozen=True)
 class SceneStats:
     """Scene statistics (scene units; counts are plain numbers).
@@ -339,6 +380,8 @@ class SceneStats:
     termination : :class:`TerminationSample` or None, where rays traced through the
         real mesh stop (measured by the caller, which can trace: ``calibrate.predict``);
         None leaves :func:`models.effects.termination_fraction` to its approximation.
+    triangles : :class:`TriangleSample` or None, what :func:`models.memory.read_bytes` weighs
+        the references by; None charges the memory term on the whole grid.
     """
 
     n_triangles: int
@@ -363,6 +406,7 @@ class SceneStats:
     enclosed_volume: float
     positions: int = 0
     termination: TerminationSample | None = None
+    triangles: TriangleSample | None = None
 
     @property
     def separate_fraction(self) -> float:

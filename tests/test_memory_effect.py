@@ -302,8 +302,8 @@ def _cost_at(res, t_mem, cache):
     k = resolve_constants(constants=_constants(t_mem, cache))
     stats = scene_statistics(Scene.builtin("sphere"))
     terms = select_effects(stats, k.t_setup, k.t_step, k.t_int, termination=True, overlap="exact", levels=1).terms
-    steps, tests, _, mem, _ = _uniform_counts(stats, tuple(res), k, terms)
-    return k.cost(steps, tests, 0.0, mem)
+    steps, tests, _, _, _, charged = _uniform_counts(stats, tuple(res), k, terms)  # the bytes the term prices
+    return k.cost(steps, tests, 0.0, charged)
 
 
 @pytest.mark.parametrize("t_mem, cache", [(40.0, 4096), (6.0, 3 << 20), (20.0, 1 << 20)])

@@ -136,3 +136,91 @@ def test_a_grid_that_fits_misses_nothing_and_the_bytes_are_the_kernels():
     # the kernel's bytes less its fixed header and one node
     assert cell_bytes(grid).sum() == pytest.approx(got["memory_bytes"], rel=0.01)
     assert 0 < got["read_bytes"] <= cell_bytes(grid).sum()
+
+
+# -- the memory term on what rays read (models.memory.read_bytes) -----------------------------
+
+from calibrate import predict as P  # noqa: E402
+from models.memory import read_bytes  # noqa: E402
+from models.stats import TriangleSample, triangle_sample  # noqa: E402
+
+# a host's isotropic constants of the order measured (docs/calibration.md), ns; a 16 MiB cache
+CONSTANTS = dict(t_setup_ns=55.0, t_step_ns=6.5, t_int_ns=1.05, t_sub_ns=38.0, t_visit_ns=5.5, t_mem_ns=12.6,
+                 cache_bytes=16 << 20)
+
+
+def test_copies_read_alike_are_charged_as_the_whole_grid():
+    """Triangles of one orientation in cells of one shape are read at one rate: with no cell records
+    the weighted share is 1 - C/F and the bytes charged are the grid's."""
+    rng = np.random.default_rng(0)
+    ext = np.column_stack([rng.uniform(0.1, 1.0, 200), rng.uniform(0.1, 1.0, 200), np.zeros(200)])
+    proj = np.column_stack([np.zeros(200), np.zeros(200), 0.5 * ext[:, 0] * ext[:, 1]])  # all facing z
+    sample = TriangleSample(extents=ext, proj_areas=proj, areas=proj[:, 2].copy(), weight=3.0)
+    extent, res = np.array([4.0, 4.0, 4.0]), (16, 16, 16)
+    c = extent / np.array(res)
+    copies = 3.0 * (1.0 + ext @ (1.0 / c) + proj @ (1.0 / np.array([c[1] * c[2], c[2] * c[0], c[0] * c[1]])))
+    grid = 76.0 * copies.sum()
+    assert read_bytes(sample, extent, res, 10.0, 30.0, grid, grid / 3, cell_bytes=0.0) == pytest.approx(grid, rel=1e-9)
+    # no sample, no cache, or a grid that fits: the grid's bytes
+    assert read_bytes(None, extent, res, 10.0, 30.0, grid, grid / 3) == grid
+    assert read_bytes(sample, extent, res, 10.0, 30.0, grid, None) == grid
+    assert read_bytes(sample, extent, res, 10.0, 30.0, grid, 2 * grid) == grid
+
+
+def test_a_triangle_sample_is_strided_and_checked():
+    scene = Scene.builtin("cylinder1996")
+    s = triangle_sample(scene.vertices, scene.faces, size=500)
+    assert s.extents.shape == (499, 3) and s.weight == pytest.approx(1996 / 499)
+    assert np.all(s.proj_areas.sum(axis=1) >= s.areas * (1 - 1e-12))  # A |n|_1 >= A
+    with pytest.raises(ValueError, match="weight"):
+        TriangleSample(extents=s.extents, proj_areas=s.proj_areas, areas=s.areas, weight=0.5)
+    with pytest.raises(ValueError, match="areas"):
+        TriangleSample(extents=s.extents, proj_areas=s.proj_areas, areas=s.areas[:-1], weight=2.0)
+    with pytest.raises(ValueError, match="finite"):
+        TriangleSample(extents=-s.extents, proj_areas=s.proj_areas, areas=s.areas, weight=2.0)
+
+
+def test_the_long_cylinders_end_caps_are_read_little_in_the_model_as_by_its_rays():
+    """`cylinder19996`: at 12 cells along the axis its end caps hold most of the references, in
+    cells rays seldom enter; at 48 the wall holds most.  The model's charged bytes and the share
+    the batch's own reads miss (reach.read_miss_fraction) both say far less misses at 12 than the
+    whole grid's 1 - C/F, and less at 12 than at 48 (0.16 and 0.06 at 12, 0.70 and 0.59 at 48,
+    against 0.67 and 0.79 for the whole grid)."""
+    scene = Scene.builtin("cylinder19996")
+    stats = P.scene_statistics(scene)
+    k = P.resolve_constants(constants=CONSTANTS)
+    terms = P.analytic_uniform_plan(stats, k, False)[0]["terms"]
+    o, d = isotropic(scene.box_lo, scene.box_hi, 65536, seed=12)  # rates of the cells entered seldom
+    shares = {}
+    for res in ((65, 65, 12), (65, 65, 48)):
+        steps, tests, _, mem, _, charged = P._uniform_counts(stats, res, k, terms)
+        model = float(miss_fraction(charged, k.cache_bytes))
+        measured = read_miss_fraction(scene, Grid.uniform(scene, res), o, d, k.cache_bytes)
+        assert model < float(miss_fraction(mem, k.cache_bytes)) - 0.05
+        assert measured["weighted"] < measured["whole"] - 0.1
+        assert abs(model - measured["weighted"]) < 0.2, (res, model, measured)
+        shares[res] = (model, measured["weighted"])
+    assert shares[(65, 65, 12)][0] < shares[(65, 65, 48)][0] and shares[(65, 65, 12)][1] < shares[(65, 65, 48)][1]
+
+
+def test_the_long_cylinder_is_planned_with_cells_long_along_its_axis():
+    """Priced on what rays read, the plan's cells are long along the axis (few cells along z), and
+    with the kernel's counts and the batch's reads it is cheaper than the near-cubic plan the
+    whole grid's memory term made (106x106x170; measured 3.1 times slower, docs/calibration.md)."""
+    scene = Scene.builtin("cylinder19996")
+    k = P.resolve_constants(constants=CONSTANTS)
+    out = P.predict(scene, constants=CONSTANTS, levels="1")
+    res = tuple(out["levels"][0]["resolution"])
+    cells = scene.box_hi - scene.box_lo
+    cell = cells / np.array(res)
+    assert cell[2] >= 4 * max(cell[0], cell[1]), res
+    assert any(e["name"] == "cell-shape" and e["used"] for e in out["effects"])
+    o, d = isotropic(scene.box_lo, scene.box_hi, 8192, seed=13)
+
+    def kernel_price(r):
+        grid = Grid.uniform(scene, r)
+        steps, tests, _, visits = (float(x.mean()) for x in grid.count(o, d, visits=True))
+        share = read_miss_fraction(scene, grid, o, d, k.cache_bytes)["weighted"]
+        return k.cost(steps, tests, 0.0, 0.0, visits) + k.t_mem * share * (steps + 1.125 * tests)
+
+    assert kernel_price(res) < 0.7 * kernel_price((106, 106, 170))
