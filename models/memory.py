@@ -100,18 +100,15 @@ def weighted_miss_fraction(rates, sizes, cache_bytes) -> float:
     if traffic <= 0.0 or float(b.sum()) <= c:
         return 0.0
 
-    def held(t):  # bytes the cache holds at characteristic time t (rays)
-        return float(np.sum(b * -np.expm1(-lam * t)))
-
-    lo, hi = 0.0, 1.0 / float(lam.max())
-    while held(hi) < c:
-        lo, hi = hi, 2.0 * hi
-    for _ in range(200):  # bisection to the last bit of t
-        mid = 0.5 * (lo + hi)
-        if mid in (lo, hi):
+    # held(t) = sum b (1 - exp(-lam t)) rises and is concave from held(0) = 0 to sum b > c: Newton's
+    # steps from t = 0 stay below the root and approach it monotonically (quadratically near it)
+    t = 0.0
+    for _ in range(200):
+        e = np.exp(-lam * t)
+        gap = c - float(np.sum(b * (1.0 - e)))
+        if gap <= 1e-12 * c:
             break
-        lo, hi = (mid, hi) if held(mid) < c else (lo, mid)
-    t = 0.5 * (lo + hi)
+        t += gap / float(np.sum(b * lam * e))
     return float(np.sum(lam * b * np.exp(-lam * t)) / traffic)
 
 
