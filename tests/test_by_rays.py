@@ -10,6 +10,7 @@ keeps them, and that predict and export use the set asked for.
 from __future__ import annotations
 
 import copy
+import json
 import re
 
 import numpy as np
@@ -224,3 +225,24 @@ def test_residuals_are_taken_against_each_ray_sets_fit(planted):
     assert np.median(np.abs(rel)) < 0.03, "each set's own fit leaves the planted 2% noise"
     pooled = {k: v for k, v in cal.items() if k != "by_rays"}
     assert np.median(np.abs(relative_residuals(pooled)[2])) > 3 * np.median(np.abs(rel))
+
+
+def test_bench_plans_with_the_fit_it_is_asked_for(planted, tmp_path, capsys):
+    """`bench --fit`: the pooled fit by default, a ray set's alone when asked; the JSON says which."""
+    from calibrate.cli import main
+
+    *_, cal = planted
+    path = calfile.save(tmp_path / "cal.json", cal)
+    grids = {}
+    for fit in ("pooled", "isotropic", "camera"):
+        code = main(["bench", "sphere", "--json", "--batch", "64", "--repeats", "1", "--rays", "camera",
+                     "--no-trimesh", "--calibration", str(path), "--fit", fit, "--quiet"])
+        assert code == 0
+        out = json.loads(capsys.readouterr().out)
+        assert ("every ray set" in out["constants"]) == (fit == "pooled")
+        assert (f"{fit} rays' fit" in out["constants"]) == (fit != "pooled")
+        grids[fit] = tuple(out["scenes"][0]["grids"]["gridcal-uniform"]["resolution"])
+    for fit in ("isotropic", "camera"):
+        k = load_calibration_constants(path, fit)
+        assert grids[fit] == tuple(predict("sphere", ratio=k.ratio, levels="1")["levels"][0]["resolution"])
+    assert grids["isotropic"] != grids["camera"]
