@@ -629,10 +629,10 @@ def add_parser(sub):
     sp.add_argument("--clock", default="thread", choices=CLOCKS,
                     help="time each call by the thread's CPU time (default: waiting for a core on a busy host is "
                          "left out) or by wall time")
-    sp.add_argument("--fit", default="pooled", choices=("pooled", "isotropic", "camera"),
-                    help="whose constants of a calibration plan the grids: the fit of every ray set together "
-                         "(default: bench traces several ray sets through one grid) or one ray set's alone "
-                         "(isotropic: the grids `calibrate predict` and `compare` recommend)")
+    sp.add_argument("--fit", default="isotropic", choices=("isotropic", "camera", "pooled"),
+                    help="whose constants of a calibration plan the grids: one ray set's alone (default isotropic: "
+                         "the grids `calibrate predict` and `compare` recommend; a calibration without that fit "
+                         "gives its pooled one) or the fit of every ray set together")
     sp.add_argument("--scale", action="store_true", help="the scaling benchmark instead")
     sp.add_argument("--max-triangles", type=positive_number("--max-triangles"), default=DEFAULT_MAX_TRIANGLES,
                     metavar="N", help=f"largest sphere of --scale (default {DEFAULT_MAX_TRIANGLES:g})")
@@ -645,7 +645,7 @@ def _source(args) -> tuple[dict, str]:
 
     if args.ratio is None and not args.calibration and not Path(DEFAULT_CALIBRATION).exists():
         return dict(ratio=1.0), f"no calibration: ratio T_int/T_step = 1 assumed (./{DEFAULT_CALIBRATION} absent)"
-    fit = getattr(args, "fit", "pooled")
+    fit = getattr(args, "fit", "isotropic")
     src = constants_from_args(args, rays=None if fit == "pooled" else fit)
     if "ratio" in src:
         return src, f"ratio T_int/T_step = {src['ratio']:g} (given)"

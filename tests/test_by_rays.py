@@ -228,21 +228,24 @@ def test_residuals_are_taken_against_each_ray_sets_fit(planted):
 
 
 def test_bench_plans_with_the_fit_it_is_asked_for(planted, tmp_path, capsys):
-    """`bench --fit`: the pooled fit by default, a ray set's alone when asked; the JSON says which."""
+    """`bench --fit`: the isotropic fit by default (the grids `predict` recommends), another ray set's
+    or the pooled fit when asked; the JSON says which."""
     from calibrate.cli import main
 
     *_, cal = planted
     path = calfile.save(tmp_path / "cal.json", cal)
     grids = {}
-    for fit in ("pooled", "isotropic", "camera"):
+    for fit in ("pooled", "isotropic", "camera", None):
         code = main(["bench", "sphere", "--json", "--batch", "64", "--repeats", "1", "--rays", "camera",
-                     "--no-trimesh", "--calibration", str(path), "--fit", fit, "--quiet"])
+                     "--no-trimesh", "--calibration", str(path), "--quiet"] + (["--fit", fit] if fit else []))
         assert code == 0
         out = json.loads(capsys.readouterr().out)
-        assert ("every ray set" in out["constants"]) == (fit == "pooled")
-        assert (f"{fit} rays' fit" in out["constants"]) == (fit != "pooled")
+        named = fit or "isotropic"
+        assert ("every ray set" in out["constants"]) == (named == "pooled")
+        assert (f"{named} rays' fit" in out["constants"]) == (named != "pooled")
+        fit = fit or "default"
         grids[fit] = tuple(out["scenes"][0]["grids"]["gridcal-uniform"]["resolution"])
     for fit in ("isotropic", "camera"):
         k = load_calibration_constants(path, fit)
         assert grids[fit] == tuple(predict("sphere", ratio=k.ratio, levels="1")["levels"][0]["resolution"])
-    assert grids["isotropic"] != grids["camera"]
+    assert grids["isotropic"] != grids["camera"] and grids["default"] == grids["isotropic"]
