@@ -235,7 +235,10 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
                      values=len(m.get("values_ns") or []))
             if "median_ns" in m:
                 steps, tests, subs, visits, source = _model_counts(stats, terms, spec, m)
-                band = k.cost_samples(steps, tests, subs, float(m.get("memory_bytes") or 0.0), visits, hits)
+                mem = float(m.get("memory_bytes") or 0.0)
+                if spec.kind == "uniform":  # the bytes the plan's memory term charges (what rays read)
+                    mem = _predict.charged_bytes(stats, spec.top, k, steps, tests, mem)
+                band = k.cost_samples(steps, tests, subs, mem, visits, hits)
                 p["predicted"] = dict(median=float(np.median(band)), ci95=[float(np.percentile(band, 2.5)),
                                                                          float(np.percentile(band, 97.5))],
                                       counts=source)

@@ -711,8 +711,8 @@ def _axis_search(stats, k: Constants, terms, res, cost0):
     nlopt's BOBYQA minimises the model's cost over the logarithms of the three resolutions
     (AXIS_SEARCH_SPAN either way, AXIS_SEARCH_EVALS evaluations; the counts are continuous in
     the cell sizes), and again from the cheapest of the AXIS_LONG_CELLS probes (one axis's
-    cells fewer) when that beats the first search; then the floors and ceilings of the result are priced and the cheapest
-    kept, and where two axes' cells can be made equal for at most AXIS_EQUAL_CELLS_TOLERANCE
+    cells fewer) when that beats the first search; then the floors and ceilings of the result
+    are priced and the cheapest kept, and where two axes' cells can be made equal for at most AXIS_EQUAL_CELLS_TOLERANCE
     more, they are (the search stops anywhere along a flat direction; a round cylinder gets
     square cells across)."""
 
