@@ -20,20 +20,21 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._grid import Grid, Scene
+from ._grid import Grid
 from .predict import BYTES_PER_CELL, BYTES_PER_REFERENCE
-from models.memory import weighted_miss_fraction
+from .rays import box_chords
+from models.memory import miss_fraction, weighted_miss_fraction
 
 __all__ = ["cell_entries", "cell_bytes", "read_miss_fraction"]
 
 
-def cell_entries(scene: Scene, grid: Grid, origins, directions) -> tuple[np.ndarray, np.ndarray]:
+def cell_entries(grid: Grid, origins, directions) -> tuple[np.ndarray, np.ndarray]:
     """(entries per cell, cells entered per ray) of ``grid`` (uniform) for rays that stop at their
     first hit.
 
     entries : (nx*ny*nz,) int64, cell ``x + nx*(y + ny*z)`` (the kernels' order).
     per_ray : (n,) int64, the cells each ray enters (0 for a ray that misses the box).
-    A ray enters the cell where it enters the box, then the next cell along it while the
+    A ray enters the cell where it enters the box (:func:`calibrate.rays.box_chords`), then the next cell along it while the
     boundary it crosses comes no later than its first hit (``Grid.intersect``) and the box
     exit; ties between axes go to x, then y, as the kernels' walk breaks them.
     """
@@ -51,20 +52,17 @@ def cell_entries(scene: Scene, grid: Grid, origins, directions) -> tuple[np.ndar
     n = o.shape[0]
     per_ray = np.zeros(n, dtype=np.int64)
     entries = np.zeros(int(np.prod(res)), dtype=np.int64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / d
-        ta, tb = (lo - o) * inv, (hi - o) * inv
-        t_in = np.nanmax(np.minimum(ta, tb), axis=1)
-        t_out = np.nanmin(np.maximum(ta, tb), axis=1)
+    t_in, t_out = box_chords(o, d, lo, hi)
     t_in = np.maximum(t_in, 0.0)
     rows = np.nonzero(t_in <= t_out)[0]
     if rows.size == 0:
         return entries, per_ray
-    o, d, inv = o[rows], d[rows], inv[rows]
+    o, d = o[rows], d[rows]
     t_stop = np.minimum(t_out[rows], t_hit[rows])
     idx = np.clip(np.floor((o + t_in[rows, None] * d - lo) / cell).astype(np.int64), 0, res - 1)
     step = np.where(d > 0, 1, -1)
     with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d
         t_next = np.where(d != 0, (lo + (idx + (d > 0)) * cell - o) * inv, np.inf)
         t_delta = np.where(d != 0, cell * np.abs(inv), np.inf)
     count = np.zeros(rows.size, dtype=np.int64)
@@ -90,7 +88,7 @@ def cell_bytes(grid: Grid) -> np.ndarray:
     return BYTES_PER_CELL + BYTES_PER_REFERENCE * refs
 
 
-def read_miss_fraction(scene: Scene, grid: Grid, origins, directions, cache_bytes) -> dict:
+def read_miss_fraction(grid: Grid, origins, directions, cache_bytes) -> dict:
     """How much of what a batch of rays reads from ``grid`` misses a cache of ``cache_bytes``.
 
     Returns ``weighted`` (:func:`models.memory.weighted_miss_fraction` with each cell's
@@ -99,9 +97,7 @@ def read_miss_fraction(scene: Scene, grid: Grid, origins, directions, cache_byte
     enters at least once), ``memory_bytes`` (the whole grid) and ``steps`` (cells entered per
     ray).
     """
-    from models.memory import miss_fraction
-
-    entries, per_ray = cell_entries(scene, grid, origins, directions)
+    entries, per_ray = cell_entries(grid, origins, directions)
     sizes = cell_bytes(grid)
     rays = max(1, len(per_ray))
     memory = float(grid.info["memory_bytes"])

@@ -17,7 +17,7 @@ import pytest
 from calibrate._grid import Grid, Scene
 from calibrate.rays import isotropic
 from calibrate.reach import cell_bytes, cell_entries, read_miss_fraction
-from models.memory import miss_fraction, weighted_miss_fraction
+from models.memory import STEP_LINES, TEST_LINES, miss_fraction, weighted_miss_fraction
 
 
 # -- the weighted miss share ----------------------------------------------------------------
@@ -108,7 +108,7 @@ def test_the_walk_enters_the_cells_the_kernel_counts_as_steps(name, resolution):
     scene = Scene.builtin(name)
     grid = Grid.uniform(scene, resolution)
     o, d = isotropic(scene.box_lo, scene.box_hi, 2048, seed=len(name) + resolution[2])
-    entries, per_ray = cell_entries(scene, grid, o, d)
+    entries, per_ray = cell_entries(grid, o, d)
     steps = grid.count(o, d)[0]
     mismatched = np.count_nonzero(per_ray != steps)
     assert mismatched <= 2, (mismatched, np.nonzero(per_ray != steps)[0][:5])  # a tie at a corner at most
@@ -121,17 +121,17 @@ def test_rays_that_miss_the_box_enter_nothing_and_a_nested_grid_is_refused():
     grid = Grid.uniform(scene, (4, 4, 16))
     o = np.array([[5.0, 5.0, -1.0], [0.0, 0.0, -1.0]])
     d = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
-    entries, per_ray = cell_entries(scene, grid, o, d)
+    entries, per_ray = cell_entries(grid, o, d)
     assert per_ray[0] == 0 and per_ray[1] >= 1 and entries.sum() == per_ray[1]
     with pytest.raises(ValueError, match="uniform"):
-        cell_entries(scene, Grid.nested(scene, 2), o, d)
+        cell_entries(Grid.nested(scene, 2), o, d)
 
 
 def test_a_grid_that_fits_misses_nothing_and_the_bytes_are_the_kernels():
     scene = Scene.builtin("sphere")
     grid = Grid.uniform(scene, (12, 12, 12))
     o, d = isotropic(scene.box_lo, scene.box_hi, 1024, seed=7)
-    got = read_miss_fraction(scene, grid, o, d, 1 << 30)
+    got = read_miss_fraction(grid, o, d, 1 << 30)
     assert got["weighted"] == 0.0 and got["whole"] == 0.0
     # the kernel's bytes less its fixed header and one node
     assert cell_bytes(grid).sum() == pytest.approx(got["memory_bytes"], rel=0.01)
@@ -195,7 +195,7 @@ def test_the_long_cylinders_end_caps_are_read_little_in_the_model_as_by_its_rays
     for res in ((65, 65, 12), (65, 65, 48)):
         steps, tests, _, mem, _, charged = P._uniform_counts(stats, res, k, terms)
         model = float(miss_fraction(charged, k.cache_bytes))
-        measured = read_miss_fraction(scene, Grid.uniform(scene, res), o, d, k.cache_bytes)
+        measured = read_miss_fraction(Grid.uniform(scene, res), o, d, k.cache_bytes)
         assert model < float(miss_fraction(mem, k.cache_bytes)) - 0.05
         assert measured["weighted"] < measured["whole"] - 0.1
         assert abs(model - measured["weighted"]) < 0.2, (res, model, measured)
@@ -220,7 +220,7 @@ def test_the_long_cylinder_is_planned_with_cells_long_along_its_axis():
     def kernel_price(r):
         grid = Grid.uniform(scene, r)
         steps, tests, _, visits = (float(x.mean()) for x in grid.count(o, d, visits=True))
-        share = read_miss_fraction(scene, grid, o, d, k.cache_bytes)["weighted"]
-        return k.cost(steps, tests, 0.0, 0.0, visits) + k.t_mem * share * (steps + 1.125 * tests)
+        share = read_miss_fraction(grid, o, d, k.cache_bytes)["weighted"]
+        return k.cost(steps, tests, 0.0, 0.0, visits) + k.t_mem * share * (STEP_LINES * steps + TEST_LINES * tests)
 
     assert kernel_price(res) < 0.7 * kernel_price((106, 106, 170))

@@ -86,7 +86,7 @@ def main() -> None:
         if row.get("skipped"):
             print(f"{'x'.join(map(str, res)):>12s}  skipped: {row['skipped']}")
             continue
-        reach = read_miss_fraction(scene, Grid.uniform(scene, res), ro, rd, k.cache_bytes)
+        reach = read_miss_fraction(Grid.uniform(scene, res), ro, rd, k.cache_bytes)
         steps, tests, visits = row["steps"], row["tests"], row["visits"]
         lines = STEP_LINES * steps + TEST_LINES * tests  # the lines a ray reads (models/memory.py)
         base = k.cost(steps, tests, 0.0, 0.0, visits)
