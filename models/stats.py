@@ -279,6 +279,9 @@ class TerminationSample:
     visits : optional (with ``resolution``), the occupied cells the rays entered before
         their hit in that grid, per ray: what :func:`models.general.surface_visits` takes
         a surface's count from.
+    occupancy : optional (with ``resolution``), more grids of the mesh and their occupied
+        cells, ``((nx, ny, nz), occupied)`` each: :func:`models.general.occupancy_scale`
+        interpolates its scale between the grids' sizes.
     """
 
     fraction: float
@@ -287,6 +290,7 @@ class TerminationSample:
     resolution: tuple[int, int, int] | None = None
     occupied: int | None = None
     visits: float | None = None
+    occupancy: tuple = ()
 
     def __post_init__(self):
         if not (0.0 <= self.fraction <= 1.0 and 0.0 <= self.p_hit <= 1.0):
@@ -296,19 +300,28 @@ class TerminationSample:
         if (self.resolution is None) != (self.occupied is None):
             raise ValueError("resolution and occupied come together (the sample's grid and its occupied cells)")
         if self.resolution is not None:
-            res = self.resolution
-            if not (isinstance(res, tuple) and len(res) == 3
-                    and all(isinstance(x, int) and not isinstance(x, bool) and x >= 1 for x in res)):
-                raise ValueError(f"resolution must be three whole numbers >= 1, got {res!r}")
-            occ = self.occupied
-            if isinstance(occ, bool) or not (isinstance(occ, int) and 0 <= occ <= res[0] * res[1] * res[2]):
-                raise ValueError(f"occupied must be a whole number of the grid's cells, got {occ!r}")
+            _check_grid_cells(self.resolution, self.occupied)
         if self.visits is not None:
             if self.resolution is None:
                 raise ValueError("visits need the sample's grid (resolution and occupied)")
             if isinstance(self.visits, bool) or not (isinstance(self.visits, (int, float))
                                                      and math.isfinite(self.visits) and self.visits >= 0):
                 raise ValueError(f"visits must be a finite number >= 0, got {self.visits!r}")
+        if self.occupancy and self.resolution is None:
+            raise ValueError("occupancy needs the sample's grid (resolution and occupied)")
+        for item in self.occupancy:
+            if not (isinstance(item, tuple) and len(item) == 2):
+                raise ValueError(f"occupancy holds ((nx, ny, nz), occupied) pairs, got {item!r}")
+            _check_grid_cells(*item)
+
+
+def _check_grid_cells(res, occ):
+    """A grid's resolution (three whole numbers >= 1) and its occupied cells (0 to all of them)."""
+    if not (isinstance(res, tuple) and len(res) == 3
+            and all(isinstance(x, int) and not isinstance(x, bool) and x >= 1 for x in res)):
+        raise ValueError(f"resolution must be three whole numbers >= 1, got {res!r}")
+    if isinstance(occ, bool) or not (isinstance(occ, int) and 0 <= occ <= res[0] * res[1] * res[2]):
+        raise ValueError(f"occupied must be a whole number of the grid's cells, got {occ!r}")
 
 
 @dataclass(frozen=True, eq=False)

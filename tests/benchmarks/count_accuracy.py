@@ -71,7 +71,7 @@ def measure_scene(scene: Scene, source: dict, scales, n_rays: int) -> list[dict]
     rows = []
     for s in scales:
         res = P._scaled(centre, s)
-        steps, tests, refs, _, visits = P._uniform_counts(stats, res, k, sel.terms)
+        steps, tests, refs, _, visits, _ = P._uniform_counts(stats, res, k, sel.terms)
         occ = occupied_cells(stats, res)
         ks, kt, _, kv = Grid.uniform(scene, res, "watertight").count(o, d, visits=True)
         ks, kt, kv = float(ks.mean()), float(kt.mean()), float(kv.mean())
