@@ -481,7 +481,7 @@ def sample_termination(scene: Scene, rays: int = TERMINATION_RAYS, seed: int = T
     covered = np.clip(np.minimum(t_hit, t_out) - t_in, 0.0, chord)
     total = float(chord.sum())
     fraction = min(1.0, float(covered.sum()) / total) if total > 0 else 1.0
-    occupied = res[0] * res[1] * res[2] - int(grid.info["n_empty_cells"])
+    occupied = _occupied_cells(grid)
     visits = float(grid.count(o, d, visits=True)[3].mean())
     del grid
     occupancy = []
@@ -489,10 +489,14 @@ def sample_termination(scene: Scene, rays: int = TERMINATION_RAYS, seed: int = T
         other = _scaled(res, s)
         if other == res or expected_refs(scene.stats, other) > TERMINATION_MAX_REFS:
             continue
-        info = Grid.uniform(scene, other).info
-        occupancy.append((other, other[0] * other[1] * other[2] - int(info["n_empty_cells"])))
+        occupancy.append((other, _occupied_cells(Grid.uniform(scene, other))))
     return TerminationSample(fraction=fraction, p_hit=float(np.mean(np.isfinite(t_hit))), rays=int(rays),
                              resolution=res, occupied=occupied, visits=visits, occupancy=tuple(occupancy))
+
+
+def _occupied_cells(grid: Grid) -> int:
+    """The cells of a uniform grid that hold a triangle."""
+    return int(grid.info["n_cells"]) - int(grid.info["n_empty_cells"])
 
 
 def _geometry(scene: Scene):

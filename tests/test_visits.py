@@ -357,7 +357,7 @@ def test_the_bunnys_occupied_cells_follow_the_kernels_from_half_to_twice_the_sam
     """The bunny's sheets share cells more in coarse grids than one scale says: with the
     termination sample's grids at several sizes the model's occupied cells are within 10% of
     the kernel's from 0.5 to 2 times the sample's cells per axis (one scale: +40% at 0.5)."""
-    from calibrate.predict import scene_statistics, termination_grid_resolution
+    from calibrate.predict import _occupied_cells, _scaled, scene_statistics, termination_grid_resolution
 
     scene = Scene.load(str(shared_mesh("stanford_bunny_69k.obj")))
     st = scene_statistics(scene)
@@ -366,9 +366,8 @@ def test_the_bunnys_occupied_cells_follow_the_kernels_from_half_to_twice_the_sam
     base = termination_grid_resolution(scene)
     worst_one = 0.0
     for f in (0.5, 0.6, 0.85, 1.2, 1.7, 2.0):
-        res = tuple(max(1, int(round(x * f))) for x in base)
-        g = Grid.uniform(scene, res)
-        kernel = res[0] * res[1] * res[2] - g.info["n_empty_cells"]
+        res = _scaled(base, f)
+        kernel = _occupied_cells(Grid.uniform(scene, res))
         assert abs(occupied_cells(st, res) / kernel - 1.0) < 0.10, (res, occupied_cells(st, res), kernel)
         worst_one = max(worst_one, abs(occupied_cells(one_scale, res) / kernel - 1.0))
     assert worst_one > 0.3  # what the sizes mend
@@ -437,14 +436,14 @@ def test_the_sampled_occupancy_finds_the_cells_a_thin_shells_two_sides_share():
     """The CAD chair's slats and legs are thinner than a cell: their two sides share cells,
     and the kernel's grids hold about half the cells the projected area counts.  Scaled by
     the termination sample's grid, the model comes within 15% at 1/4 to 4 cells a triangle."""
-    from calibrate.predict import scene_statistics
+    from calibrate.predict import _occupied_cells, scene_statistics
 
     scene = Scene.load(str(shared_mesh("cad_chair_soup_13k.obj")))
     plain, sampled = scene.stats, scene_statistics(scene)
     assert sampled.termination.resolution is not None
     for cells_per_triangle in (0.25, 1.0, 4.0):
         res = resolution_for_cells(cells_per_triangle * plain.n_triangles, plain.extent)
-        kernel = res[0] * res[1] * res[2] - Grid.uniform(scene, res).info["n_empty_cells"]
+        kernel = _occupied_cells(Grid.uniform(scene, res))
         assert occupied_cells(plain, res) / kernel > 1.8
         assert abs(occupied_cells(sampled, res) / kernel - 1.0) < 0.15, (res, occupied_cells(sampled, res), kernel)
 
