@@ -417,6 +417,39 @@ def test_deeper_grids_need_a_gain_beyond_the_models_misfit(l2, l3, depth):
     assert "3%" in effects[-1]["reason"]
 
 
+def test_the_depth_rule_prices_a_plan_on_the_bytes_it_charges():
+    """A uniform plan whose memory term charges fewer bytes than its grid holds (what rays read,
+    models.memory.read_bytes) is priced on those in the depth rule, as its own prediction is: planted,
+    a 64 MiB grid charged as 8 MiB against a 16 MiB cache costs its steps alone and beats a nested
+    plan 10% cheaper than the whole grid's price."""
+    from calibrate.predict import _deepen
+
+    k = resolve_constants(constants=dict(t_setup_ns=0.0, t_step_ns=1.0, t_int_ns=1.0, t_sub_ns=1.0, t_mem_ns=1.0,
+                                         cache_bytes=16 * 2 ** 20))
+    mib = 2 ** 20
+    uniform = dict(steps=100.0, tests=0.0, subgrids=0.0, levels=[{}], memory_bytes=64 * mib, charged_bytes=8 * mib)
+    whole = k.cost(100.0, 0.0, 0.0, 64 * mib)
+    assert whole == pytest.approx(100.0 + 0.75 * 100.0)  # 3/4 of the lines beyond the cache
+    nested = dict(steps=0.9 * whole, tests=0.0, subgrids=0.0, levels=[{}, {}], memory_bytes=8 * mib)
+    best, effects = _deepen(k, lambda: (dict(uniform), []), lambda L: (dict(nested), []), (ValueError,), "planted")
+    assert len(best["levels"]) == 1
+    assert "L=1: 100," in effects[-1]["reason"]
+
+
+def test_auto_depth_prices_the_uniform_plan_as_levels_1_does():
+    """``predict --levels auto``'s L=1 cost is the one ``--levels 1`` predicts: on ``cylinder19996``
+    (shaped cells whose end caps rays seldom read) with a memory term the two differed 3-fold."""
+    from calibrate import predict as P
+
+    k = dict(t_setup_ns=50.0, t_step_ns=7.0, t_int_ns=1.0, t_sub_ns=40.0, t_mem_ns=16.0, t_visit_ns=5.0,
+             cache_bytes=16 * 2 ** 20)
+    one = P.predict("cylinder19996", constants=k, levels=1)
+    auto = P.predict("cylinder19996", constants=k, levels="auto")
+    reason = next(e["reason"] for e in auto["effects"] if e["name"] == "levels")
+    l1 = float(reason.split("L=1: ")[1].split(",")[0])
+    assert l1 == pytest.approx(one["predicted"]["ns_per_ray"]["median"], rel=1e-3)
+
+
 @pytest.mark.parametrize("l2, depth", [(79.9, 1), (None, 2)])  # 79.9 would pass without the set-up
 def test_ratio_mode_gain_counts_an_assumed_set_up(l2, depth):
     """With a ratio alone T_setup is unknown: the gain is taken on cost + RATIO_MODE_T_SETUP_IN_T_STEP,
