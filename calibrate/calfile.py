@@ -35,8 +35,9 @@ Schema (version :data:`SCHEMA_VERSION`), one JSON object::
                                                  #   lines its batch fetched from beyond the cache
          "visits": int,                          # optional: occupied cells entered (<= steps)
          "hits": int,                            # optional: rays that found a hit (<= rays)
-         "changes": int,                         # optional, recorded and not fitted: the walks'
-                                                 #   occupancy changes (<= steps; Grid.count)
+         "changes": int,                         # optional: the walks' occupancy changes (<= steps;
+                                                 #   Grid.count); with every record carrying
+                                                 #   them, T_visit prices them with the visits
          ...extra keys kept}
       ],
       "meta": {...},                    # free-form (tool version, budget, wall time, ...);
@@ -618,8 +619,9 @@ def design_from_measurements(
     optional : the optional counts (of OPTIONAL_COUNT_FIELDS) to take, each when every
         chosen record has it; by default all (DEFAULT_OPTIONAL_COUNTS).
     Returns {rays, steps, tests, subgrids: (J,) float arrays, times_ns: J lists}, and
-    ``misses`` (the memory effect's count), ``visits`` (occupied cells entered) and ``hits``
-    (rays that found a hit) as ``optional`` says.
+    ``misses`` (the memory effect's count), ``visits`` (occupied cells entered, plus the
+    changes of occupancy when every chosen record carries ``changes``) and ``hits`` (rays
+    that found a hit) as ``optional`` says.
     """
     if kind not in MEASUREMENT_KINDS:
         raise UserError(f"kind must be one of {', '.join(MEASUREMENT_KINDS)}, got {kind!r}")
@@ -642,6 +644,11 @@ def design_from_measurements(
             raise UserError(f"unknown optional count {key!r} (known: {', '.join(OPTIONAL_COUNT_FIELDS)})")
         if all(key in m for m in chosen):
             design[key] = np.array([float(m[key]) for m in chosen])
+            if key == "visits" and all("changes" in m for m in chosen):
+                # T_visit prices the changes of occupancy with the occupied cells entered: at
+                # either the walk turns from stepping to testing or back
+                # (models.general.occupancy_changes)
+                design[key] = design[key] + np.array([float(m["changes"]) for m in chosen])
     design["times_ns"] = [list(map(float, m["values_ns"])) for m in chosen]
     return design
 

@@ -121,14 +121,17 @@ def _baseline_specs(pred: dict) -> dict:
 
 
 def _model_counts(stats, terms, spec: GridSpec, point: dict) -> tuple[float, float, float, float, str]:
-    """(steps, tests, subgrids, occupied cells entered, source) of the predicted curve at one sweep point."""
-    from models.general import predict_uniform, stopped_tests_per_ray, visits_per_ray
+    """(steps, tests, subgrids, visits, source) of the predicted curve at one sweep point, the visits
+    what T_visit prices: occupied cells entered and changes of occupancy."""
+    from models.general import occupancy_changes, predict_uniform, stopped_tests_per_ray, visits_per_ray
 
     if spec.kind == "uniform":
         _, steps, _ = predict_uniform(stats, spec.top, 0.0, 1.0, 1.0, overlap="exact", terms=terms)
         tests = stopped_tests_per_ray(stats, spec.top, terms=terms)
-        return steps, tests, 0.0, visits_per_ray(stats, spec.top, terms=terms), "model"
-    return point["steps"], point["tests"], point["subgrids"], point.get("visits", 0.0), "kernel"
+        visits = visits_per_ray(stats, spec.top, terms=terms) + occupancy_changes(stats, spec.top)
+        return steps, tests, 0.0, visits, "model"
+    return (point["steps"], point["tests"], point["subgrids"], point.get("visits", 0.0) + point.get("changes", 0.0),
+            "kernel")
 
 
 def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: str = "auto",
@@ -230,8 +233,8 @@ def compare_scene(scene, *, constants=None, samples=None, ratio=None, levels: st
             m = measured[index[spec]]
             p = dict(levels=L, factor=float(f), resolution=list(spec.top), sub_scale=spec.sub_scale
                      if spec.kind == "nested" else None, **{key: m.get(key) for key in (
-                         "median_ns", "mad_ns", "steps", "tests", "subgrids", "visits", "cells", "memory_bytes",
-                         "skipped")},
+                         "median_ns", "mad_ns", "steps", "tests", "subgrids", "visits", "changes", "cells",
+                         "memory_bytes", "skipped")},
                      values=len(m.get("values_ns") or []))
             if "median_ns" in m:
                 steps, tests, subs, visits, source = _model_counts(stats, terms, spec, m)

@@ -50,8 +50,8 @@ import numpy as np
 from models import baselines as _baselines
 from models.closed_forms import MAX_CELLS_PER_AXIS, MAX_TOTAL_CELLS, cells_to_resolution, l_level_cells
 from models.effects import EFFECT_TOLERANCE, select_effects, termination_fraction
-from models.general import (THIN_AXIS_CELLS, Terms, cell_fraction, expected_refs, predict_uniform, steps_per_ray,
-                            stopped_tests_per_ray, terminated_visits, visits_per_ray)
+from models.general import (THIN_AXIS_CELLS, Terms, cell_fraction, expected_refs, occupancy_changes,
+                            predict_uniform, steps_per_ray, stopped_tests_per_ray, terminated_visits, visits_per_ray)
 from models.memory import lines_beyond_cache, read_bytes
 from models.nested import MAX_LEVELS, TooManyPairs, clustering_change, nested_counts
 from models.portable import paper_k, paper_level_cells
@@ -483,16 +483,22 @@ def sample_termination(scene: Scene, rays: int = TERMINATION_RAYS, seed: int = T
     total = float(chord.sum())
     fraction = min(1.0, float(covered.sum()) / total) if total > 0 else 1.0
     occupied = _occupied_cells(grid)
-    visits = float(grid.count(o, d, visits=True)[3].mean())
+    _, _, _, n_visits, n_changes = grid.count(o, d, visits=True, changes=True)
+    visits = float(n_visits.mean())
+    changes = [(res, float(n_changes.mean()))]
     del grid
     occupancy = []
     for s in OCCUPANCY_AXIS_SCALES:
         other = _scaled(res, s)
         if other == res or expected_refs(scene.stats, other) > TERMINATION_MAX_REFS:
             continue
-        occupancy.append((other, _occupied_cells(Grid.uniform(scene, other))))
+        g = Grid.uniform(scene, other)
+        occupancy.append((other, _occupied_cells(g)))
+        changes.append((other, float(g.count(o, d, changes=True)[-1].mean())))
+        del g
     return TerminationSample(fraction=fraction, p_hit=float(np.mean(np.isfinite(t_hit))), rays=int(rays),
-                             resolution=res, occupied=occupied, visits=visits, occupancy=tuple(occupancy))
+                             resolution=res, occupied=occupied, visits=visits, occupancy=tuple(occupancy),
+                             changes=tuple(changes))
 
 
 def _occupied_cells(grid: Grid) -> int:
@@ -621,15 +627,17 @@ def _effect_dicts(sel):
 
 
 def _uniform_counts(stats, res, k: Constants, terms):
-    """(steps, tests, references, memory bytes, occupied cells entered, charged bytes) of a uniform
-    grid under the general model (the tests of rays that stop:
-    :func:`models.general.stopped_tests_per_ray`); the charged bytes are what the memory term
+    """(steps, tests, references, memory bytes, visits, charged bytes) of a uniform grid under
+    the general model (the tests of rays that stop: :func:`models.general.stopped_tests_per_ray`);
+    the visits are what T_visit prices, the occupied cells entered
+    (:func:`models.general.visits_per_ray`) and the changes of occupancy
+    (:func:`models.general.occupancy_changes`); the charged bytes are what the memory term
     prices (:func:`charged_bytes`), the memory bytes the grid's."""
     _, steps, _ = predict_uniform(stats, res, k.t_setup, k.t_step, k.t_int, overlap="exact", terms=terms)
     tests = stopped_tests_per_ray(stats, res, terms=terms)
     refs = expected_refs(stats, res, overlap="exact")
     mem = _memory_bytes(res[0] * res[1] * res[2], refs, 1)
-    return (steps, tests, refs, mem, visits_per_ray(stats, res, terms=terms),
+    return (steps, tests, refs, mem, visits_per_ray(stats, res, terms=terms) + occupancy_changes(stats, res),
             charged_bytes(stats, res, k, steps, tests, mem))
 
 
@@ -657,8 +665,9 @@ def _visits_effect(k: Constants, cost: float, visits: float, what: str) -> dict:
     """The occupied-cell effect's entry for a plan of predicted ``cost`` (``change``: the share of
     it the term is)."""
     share = k.t_visit * visits / cost if cost > 0 else 0.0
-    return _term_effect("occupied-cells", share, f"{visits:.3g} occupied cells entered per ray "
-                        f"(models.general.visits_per_ray, approximate) at {k.t_visit:.3g} ns each", what)
+    return _term_effect("occupied-cells", share, f"{visits:.3g} occupied cells entered and changes of occupancy "
+                        "per ray (models.general.visits_per_ray, approximate, and occupancy_changes, sampled) at "
+                        f"{k.t_visit:.3g} ns each", what)
 
 
 def _memory_effect(k: Constants, steps, tests, memory_bytes, what: str, subgrids=0.0, visits=0.0,
@@ -854,7 +863,8 @@ def analytic_uniform_plan(stats, k: Constants, mailbox):
         steps, tests, refs, mem, visits, charged = shaped_cands[res][1]
         candidates = [(q, shaped_cands[q][1]) for q in sorted(shaped_cands)]
     plan = dict(levels=_level_dicts_uniform(stats, res, refs), steps=steps, tests=tests, subgrids=0.0,
-                memory_bytes=mem, charged_bytes=charged, visits=visits, terms=sel.terms, selection=sel)
+                memory_bytes=mem, charged_bytes=charged, visits=visits, changes=occupancy_changes(stats, res),
+                terms=sel.terms, selection=sel)
     if candidates is not None:
         plan["candidates"] = candidates
     return plan, effects
@@ -980,8 +990,12 @@ def _analytic_nested(scene, stats, k: Constants, L, mailbox):
     f = sel.terms.traversed_fraction
     g = cell_fraction(f, counts.steps)
     steps, tests, subgrids, visits = _terminated_nested(counts, stats, f)
-    plan = dict(levels=_nested_levels(counts), steps=steps, tests=tests, subgrids=subgrids,
-                memory_bytes=_nested_memory_bytes(counts), visits=visits,
+    levels = _nested_levels(counts)
+    # the changes of occupancy along the top grid's walks (a cell holding a subgrid is occupied),
+    # as a uniform grid of its resolution has them; the subgrids' own walks are not counted
+    changes = occupancy_changes(stats, levels[0]["resolution"])
+    plan = dict(levels=levels, steps=steps, tests=tests, subgrids=subgrids,
+                memory_bytes=_nested_memory_bytes(counts), visits=visits + changes, changes=changes,
                 terms=sel.terms, counts=counts, overlap=overlap)
     effects = _effect_dicts(sel)
     if k.has_memory:
@@ -1092,9 +1106,11 @@ def fit_count_curves(scales, steps, tests):
 
 
 def _count(grid, o, d):
-    """Per-ray means from the instrumented twin: (steps, tests, subgrids, occupied cells entered, grid info)."""
-    steps, tests, sub, visits = grid.count(o, d, visits=True)
-    return float(steps.mean()), float(tests.mean()), float(sub.mean()), float(visits.mean()), grid.info
+    """Per-ray means from the instrumented twin: (steps, tests, subgrids, visits, changes, grid info), the
+    visits what T_visit prices: the occupied cells entered and the changes of occupancy (of them)."""
+    steps, tests, sub, visits, changes = grid.count(o, d, visits=True, changes=True)
+    return (float(steps.mean()), float(tests.mean()), float(sub.mean()), float(visits.mean() + changes.mean()),
+            float(changes.mean()), grid.info)
 
 
 def _simulated_uniform(scene, stats, k: Constants, rays, mailbox):
@@ -1110,7 +1126,7 @@ def _simulated_uniform(scene, stats, k: Constants, rays, mailbox):
         res = _scaled(base, s * shift)
         if res[0] * res[1] * res[2] > SIM_MAX_CELLS or any(r[1] == res for r in rows):
             continue
-        st, te, _, vi, _ = _count(Grid.uniform(scene, res, mailbox=mailbox), o, d)
+        st, te, _, vi, _, _ = _count(Grid.uniform(scene, res, mailbox=mailbox), o, d)
         rows.append((s * shift, res, st, te, vi))
     sc = np.array([r[0] for r in rows])
     st = np.array([r[2] for r in rows])
@@ -1144,7 +1160,7 @@ def _simulated_uniform(scene, stats, k: Constants, rays, mailbox):
         edge_note = (f"; bounded by the simulation's {SIM_MAX_CELLS:,}-cell budget: the optimum may be finer"
                      if shift < 1.0 else "; at the finest simulated resolution: the optimum may be finer")
     res = _scaled(base, s_best)
-    steps, tests, _, n_visits, info = _count(Grid.uniform(scene, res, mailbox=mailbox), o, d)
+    steps, tests, _, n_visits, n_changes, info = _count(Grid.uniform(scene, res, mailbox=mailbox), o, d)
     refs = float(info["n_refs"])
     model_steps = steps_per_ray(stats.extent, res)
     _, _, model_tests = predict_uniform(stats, res, 0.0, 1.0, 1.0, overlap="exact", terms=Terms(mailbox=mailbox))
@@ -1152,7 +1168,7 @@ def _simulated_uniform(scene, stats, k: Constants, rays, mailbox):
     plan = dict(levels=[dict(level=1, resolution=_res_list(res), grids=1, cells=int(cells), references=refs,
                              memory_bytes=int(info["memory_bytes"]))],
                 steps=steps, tests=tests, subgrids=0.0, memory_bytes=int(info["memory_bytes"]), visits=n_visits,
-                charged_bytes=charged_bytes(stats, res, k, steps, tests, int(info["memory_bytes"])),
+                changes=n_changes, charged_bytes=charged_bytes(stats, res, k, steps, tests, int(info["memory_bytes"])),
                 simulation=dict(rays=SIM_RAYS, ray_set=rays, scales=sc.tolist(), steps=st.tolist(),
                                 tests=te.tolist(), visits=vi.tolist(), steps_fit=a.tolist(), tests_fit=b.tolist(),
                                 best_scale=s_best, analytic_resolution=_res_list(base)))
@@ -1227,9 +1243,9 @@ def _simulated_nested(scene, stats, k: Constants, L, rays, mailbox):
     grid = Grid.nested(scene, levels=L, resolution=counts.top_resolution, subgrid_resolutions=sub,
                        subgrid_resolutions2=sub2, mailbox=mailbox)
     o, d = _rays(scene, rays, SIM_RAYS, SIM_SEED)
-    steps, tests, subgrids, n_visits, info = _count(grid, o, d)
+    steps, tests, subgrids, n_visits, n_changes, info = _count(grid, o, d)
     plan = dict(plan, steps=steps, tests=tests, subgrids=subgrids, memory_bytes=int(info["memory_bytes"]),
-                visits=n_visits)
+                visits=n_visits, changes=n_changes)
     plan["levels"] = [dict(lv) for lv in plan["levels"]]
     plan["levels"][-1]["references"] = float(info["n_refs"])
     effects.append(dict(name="simulated", used=True, change=0.0,
@@ -1290,8 +1306,9 @@ def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analyt
     ``fidelity``, ``units`` ("ns" or "T_step"), ``levels`` (top first, each with
     ``resolution`` [nx, ny, nz], ``grids``, ``cells``, ``references``), ``memory_bytes``,
     ``predicted`` (``ns_per_ray`` {median, ci95} or None in ratio mode, ``cost_t_step``
-    in ratio mode, ``steps_per_ray``, ``tests_per_ray``, ``subgrids_per_ray``, ``visits_per_ray``,
-    ``hits_per_ray``: the share of rays that hit, priced at T_hit; 0 without T_hit),
+    in ratio mode, ``steps_per_ray``, ``tests_per_ray``, ``subgrids_per_ray``, ``visits_per_ray``:
+    what T_visit prices, the occupied cells entered and the changes of occupancy, ``changes_per_ray``:
+    the changes of them, ``hits_per_ray``: the share of rays that hit, priced at T_hit; 0 without T_hit),
     ``effects`` (list of {name, used, change, reason}), ``baselines`` (name ->
     top-level [nx, ny, nz]), ``baselines_detail``, ``notes``, ``timing_s``.
     """
@@ -1325,6 +1342,7 @@ def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analyt
     # the paper fidelity is the talk's model: no memory term, no occupied cells
     plan_bytes = float(plan.get("charged_bytes", plan["memory_bytes"])) if fidelity != "paper" else 0.0
     visits = float(plan.get("visits", 0.0)) if fidelity != "paper" else 0.0
+    changes = float(plan.get("changes", 0.0)) if fidelity != "paper" else 0.0
     # a ray that hits costs T_hit more: the share of isotropic lines that hit the mesh (sampled
     # where the traversed fraction is); the same at every resolution, so no plan depends on it
     hits = float(termination_fraction(stats)[1]) if fidelity != "paper" and k.t_hit > 0 else 0.0
@@ -1333,7 +1351,7 @@ def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analyt
                      "camera rays hit as their view has it")
     cost = _interval(k.cost_samples(steps, tests, subgrids, plan_bytes, visits, hits))
     predicted = dict(ns_per_ray=cost if k.units == "ns" else None, steps_per_ray=steps, tests_per_ray=tests,
-                     subgrids_per_ray=subgrids, visits_per_ray=visits, hits_per_ray=hits)
+                     subgrids_per_ray=subgrids, visits_per_ray=visits, changes_per_ray=changes, hits_per_ray=hits)
     if k.has_memory and fidelity != "paper":
         predicted["lines_per_ray"] = k.lines(steps, tests, plan_bytes)
     if k.units != "ns":
@@ -1359,11 +1377,12 @@ def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analyt
         res1 = plan["levels"][0]["resolution"]
         _, m_steps, _ = predict_uniform(stats, res1, 0.0, 1.0, 1.0, overlap="exact", terms=terms)
         m_tests = stopped_tests_per_ray(stats, res1, terms=terms)
-        predicted["model_cost_per_ray"] = k.cost(m_steps, m_tests, 0.0, plan_bytes,
-                                                 visits_per_ray(stats, res1, terms=terms), hits)
+        predicted["model_cost_per_ray"] = k.cost(m_steps, m_tests, 0.0, plan_bytes, visits_per_ray(
+            stats, res1, terms=terms) + occupancy_changes(stats, res1), hits)
     elif "counts" in plan:
         # the model's counts, also for a simulated plan (whose steps and tests are the kernel's)
         steps, tests, subgrids, visits = _terminated_nested(plan["counts"], stats, terms.traversed_fraction)
+        visits += occupancy_changes(stats, plan["levels"][0]["resolution"])
         predicted["model_cost_per_ray"] = k.cost(steps, tests, subgrids, plan_bytes, visits, hits)
     else:
         predicted["model_cost_per_ray"] = None

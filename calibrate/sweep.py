@@ -277,10 +277,11 @@ def _as_grid(scene, spec_or_grid, mailbox=False):
 
 
 def _counts(grid: Grid, origins, directions) -> dict:
-    t, _, steps, tests, subgrids, visits = grid.count(origins, directions, hits=True, visits=True)
+    t, _, steps, tests, subgrids, visits, changes = grid.count(origins, directions, hits=True, visits=True,
+                                                               changes=True)
     info = grid.info
     return dict(steps=float(steps.mean()), tests=float(tests.mean()), subgrids=float(subgrids.mean()),
-                visits=float(visits.mean()), hits=float(np.isfinite(t).mean()),
+                visits=float(visits.mean()), changes=float(changes.mean()), hits=float(np.isfinite(t).mean()),
                 cells=int(info["n_cells"]), references=int(info["n_refs"]),
                 memory_bytes=int(info["memory_bytes"]))
 

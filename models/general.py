@@ -224,6 +224,31 @@ def occupancy_scale(stats: SceneStats, resolution=None) -> float:
     return float(math.exp(np.interp(x, [p[0] for p in points], [p[1] for p in points])))
 
 
+def occupancy_changes(stats: SceneStats, resolution) -> float:
+    """Changes of occupancy per ray at ``resolution``: the cells of a ray's walk that are empty
+    after an occupied one or occupied after an empty one (the cell before the first counting
+    as occupied), what the instrumented kernel counts (``Grid.count(..., changes=True)``).
+
+    Each is the branch that decides whether a cell is tested going the other way from the
+    cell before, mispredicted about once a change (callgrind: 1.83 a ray on the sphere,
+    docs/calibration.md, "One T_step for every scene"); T_visit prices them with the occupied
+    cells entered.  How many a ray makes depends on the mesh and the cell, not on a law the
+    statistics give: on a scan about 2 for every ray that enters the box in an empty cell,
+    nearly constant over the resolution; on a cylinder none while every cell a ray enters is
+    occupied and about 1 once the grid has empty cells around the wall; on separate
+    triangles about 2 S p (1 - p) for S steps of which a share p occupied.  So they are taken
+    from the termination sample's grids (:attr:`models.stats.TerminationSample.changes`),
+    linearly in the log of the cells between them and the nearest one's beyond them;
+    0 without a sample (a mesh too large to sample: the plan is then priced without them).
+    """
+    ts = stats.termination
+    if ts is None or not ts.changes:
+        return 0.0
+    points = sorted((math.log(float(r[0] * r[1] * r[2])), float(c)) for r, c in ts.changes)
+    x = math.log(float(np.prod(_resolution(resolution))))
+    return float(np.interp(x, [p[0] for p in points], [p[1] for p in points]))
+
+
 def terminated_visits(visits, separate_fraction, traversed_fraction, surface=VISITS_SURFACE):
     """Occupied cells a ray enters when rays stop at their first hit, from the count without
     termination ``visits`` (broadcasts over arrays).

@@ -282,6 +282,10 @@ class TerminationSample:
     occupancy : optional (with ``resolution``), more grids of the mesh and their occupied
         cells, ``((nx, ny, nz), occupied)`` each: :func:`models.general.occupancy_scale`
         interpolates its scale between the grids' sizes.
+    changes : optional (with ``resolution``), grids of the mesh (the sample's among them) and
+        the changes of occupancy per ray along the walks of the rays in each,
+        ``((nx, ny, nz), changes)``: what :func:`models.general.occupancy_changes`
+        interpolates between the grids' sizes.
     """
 
     fraction: float
@@ -291,6 +295,7 @@ class TerminationSample:
     occupied: int | None = None
     visits: float | None = None
     occupancy: tuple = ()
+    changes: tuple = ()
 
     def __post_init__(self):
         if not (0.0 <= self.fraction <= 1.0 and 0.0 <= self.p_hit <= 1.0):
@@ -313,6 +318,16 @@ class TerminationSample:
             if not (isinstance(item, tuple) and len(item) == 2):
                 raise ValueError(f"occupancy holds ((nx, ny, nz), occupied) pairs, got {item!r}")
             _check_grid_cells(*item)
+        if self.changes and self.resolution is None:
+            raise ValueError("changes need the sample's grid (resolution and occupied)")
+        for item in self.changes:
+            if not (isinstance(item, tuple) and len(item) == 2):
+                raise ValueError(f"changes holds ((nx, ny, nz), changes per ray) pairs, got {item!r}")
+            res, per_ray = item
+            _check_grid_cells(res, 0)
+            if isinstance(per_ray, bool) or not (isinstance(per_ray, (int, float)) and math.isfinite(per_ray)
+                                                 and per_ray >= 0):
+                raise ValueError(f"changes per ray must be a finite number >= 0, got {per_ray!r}")
 
 
 def _check_grid_cells(res, occ):

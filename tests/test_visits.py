@@ -29,9 +29,9 @@ from calibrate.scenes import scattered_compact
 from calibrate.suites import empty_grid, resolution_for_cells
 from conftest import assert_planted_recovered, exported_header, planted_calibration, planted_counts, shared_mesh
 from models.effects import termination_fraction
-from models.general import (VISITS_SURFACE, Terms, occupancy_scale, occupied_cells, predict_uniform,
-                            stopped_tests_per_ray, surface_visits, terminated_visits, triangle_tests_per_ray,
-                            visits_per_ray)
+from models.general import (VISITS_SURFACE, Terms, occupancy_changes, occupancy_scale, occupied_cells,
+                            predict_uniform, stopped_tests_per_ray, surface_visits, terminated_visits,
+                            triangle_tests_per_ray, visits_per_ray)
 from models.nested import nested_counts
 from models.stats import TerminationSample, triangle_geometry
 
@@ -388,7 +388,17 @@ def test_the_bunnys_occupied_cells_follow_the_kernels_from_half_to_twice_the_sam
                                       (dict(resolution=(2, 2, 2), occupied=3, occupancy=(((2, 2, 2), 9),)),
                                        "whole number of the grid"),
                                       (dict(resolution=(2, 2, 2), occupied=3, occupancy=(((0, 2, 2), 0),)),
-                                       "three whole numbers")])
+                                       "three whole numbers"),
+                                      (dict(changes=(((2, 2, 2), 1.0),)), "need the sample's grid"),
+                                      (dict(resolution=(2, 2, 2), occupied=3, changes=((2, 2, 2),)), "pairs"),
+                                      (dict(resolution=(2, 2, 2), occupied=3, changes=(((2, 2), 1.0),)),
+                                       "three whole numbers"),
+                                      (dict(resolution=(2, 2, 2), occupied=3, changes=(((2, 2, 2), -0.5),)),
+                                       "finite number >= 0"),
+                                      (dict(resolution=(2, 2, 2), occupied=3, changes=(((2, 2, 2), float("inf")),)),
+                                       "finite number >= 0"),
+                                      (dict(resolution=(2, 2, 2), occupied=3, changes=(((2, 2, 2), None),)),
+                                       "finite number >= 0")])
 def test_a_termination_samples_grid_is_checked(bad, msg):
     with pytest.raises(ValueError, match=msg):
         TerminationSample(fraction=0.5, p_hit=0.5, rays=64, **bad)
@@ -536,9 +546,27 @@ def test_t_visit_round_trips_and_bad_visit_counts_are_rejected(planted, tmp_path
             calfile.validate(bad)
 
 
-def test_occupancy_changes_are_kept_unfitted_and_bad_counts_are_rejected(planted, tmp_path):
-    """A measurement's ``changes`` round-trips and is not a term of the fit: the same
-    constants with and without it; bad counts are named."""
+def test_occupancy_changes_join_the_occupied_cells_t_visit_prices_and_bad_counts_are_rejected(planted, tmp_path):
+    """With every record carrying ``changes``, the design's visits are the occupied cells entered
+    plus the changes of occupancy (T_visit prices both), and a T_visit planted on that sum comes
+    back; with one record without them the visits are the occupied cells alone.  A measurement's
+    ``changes`` round-trips; bad counts are named."""
+    rng = np.random.default_rng(3)
+    recs = _records(3)
+    for m in recs:
+        m["changes"] = int(rng.integers(0, m["steps"] + 1))
+        mu = (RAYS * TRUTH["t_setup_ns"] + m["steps"] * TRUTH["t_step_ns"] + m["tests"] * TRUTH["t_int_ns"]
+              + m["subgrids"] * TRUTH["t_sub_ns"] + (m["visits"] + m["changes"]) * TRUTH["t_visit_ns"])
+        m["values_ns"] = [float(v) for v in mu * np.exp(NOISE_REL * rng.standard_normal(N_REPEATS))]
+    design = _design(recs)
+    assert "changes" not in design
+    assert np.array_equal(design["visits"], [float(m["visits"] + m["changes"]) for m in recs])
+    result = calfile.fit_in_context(design, seed=0, priors=PRIORS)
+    assert_planted_recovered(result, TRUTH, ("t_step_ns", "t_int_ns", "t_visit_ns"))
+    partial = [dict(m) for m in recs]
+    del partial[5]["changes"]
+    assert np.array_equal(_design(partial)["visits"], [float(m["visits"]) for m in recs])
+
     _, _, cal = planted
     withc = json.loads(json.dumps(cal))
     for m in withc["measurements"]:
@@ -547,16 +575,63 @@ def test_occupancy_changes_are_kept_unfitted_and_bad_counts_are_rejected(planted
     calfile.save(path, withc)
     back = calfile.load(path)
     assert [m["changes"] for m in back["measurements"]] == [m["changes"] for m in withc["measurements"]]
-    assert "changes" not in calfile.design_from_measurements(back["measurements"], "in_context")
-    a = calfile.refit(back, seed=0, optional=ALL)["constants"]
-    b = calfile.refit(cal, seed=0, optional=ALL)["constants"]
-    assert a["t_step_ns"]["median"] == pytest.approx(b["t_step_ns"]["median"], rel=1e-12)
     for value, message in ((-1, "whole number of cells"), (2.5, "whole number of cells"), (float("nan"), "finite"),
                            (cal["measurements"][0]["steps"] + 1, "a change is a cell stepped into")):
         bad = json.loads(json.dumps(withc))
         bad["measurements"][0]["changes"] = value
         with pytest.raises(ValueError, match=r"measurements\[0\]\.changes: .*" + message):
             calfile.validate(bad)
+
+
+@pytest.mark.parametrize("i", range(3))
+def test_sampled_changes_come_back_at_their_grids_and_are_interpolated_between_them(i):
+    """Planted changes per ray at three grid sizes come back at each; between two they are linear
+    in the log of the cells; beyond the smallest and largest the nearest one's holds; without a
+    sample (or without changes in it) 0."""
+    st = Scene.builtin(("sphere", "cylinder1996", "scattered-compact")[i]).stats
+    values = ((1.2, 1.7, 1.8), (0.0, 0.6, 1.3), (0.1, 2.5, 14.0))[i]
+    base = resolution_for_cells(st.n_triangles, st.extent)
+    sizes = [tuple(max(1, int(round(x * f))) for x in base) for f in (0.5, 1.0, 2.0)]
+    sample = TerminationSample(fraction=0.5, p_hit=0.5, rays=64, resolution=sizes[1], occupied=1,
+                               changes=tuple(zip(sizes, values))[::-1])
+    sampled = replace(st, termination=sample)
+    for r, v in zip(sizes, values):
+        assert occupancy_changes(sampled, r) == pytest.approx(v, abs=1e-12)
+    lo, hi = (math.log(float(np.prod(r))) for r in sizes[1:])
+    mid = resolution_for_cells(math.exp(0.5 * (lo + hi)), st.extent)
+    t = (math.log(float(np.prod(mid))) - lo) / (hi - lo)
+    assert 0 < t < 1
+    assert occupancy_changes(sampled, mid) == pytest.approx((1 - t) * values[1] + t * values[2], rel=1e-12)
+    assert occupancy_changes(sampled, (1, 1, 1)) == pytest.approx(values[0], abs=1e-12)
+    assert occupancy_changes(sampled, tuple(4 * x for x in sizes[2])) == pytest.approx(values[2], abs=1e-12)
+    assert occupancy_changes(st, sizes[1]) == 0.0
+    assert occupancy_changes(replace(st, termination=replace(sample, changes=())), sizes[1]) == 0.0
+
+
+@pytest.mark.parametrize("name", ["sphere", "cylinder1996"])
+def test_the_termination_sample_counts_the_changes_the_kernel_counts_on_its_grids(name):
+    """The sample's changes per ray are the instrumented kernel's on its own rays, at its grid and
+    at each of the grids it counts occupied cells in; and a plan prices them with T_visit."""
+    from calibrate.predict import TERMINATION_RAYS, TERMINATION_SEED, sample_termination
+
+    scene = Scene.builtin(name)
+    sample = sample_termination(scene)
+    grids = [sample.resolution] + [r for r, _ in sample.occupancy]
+    assert [r for r, _ in sample.changes] == grids
+    o, d = isotropic(scene.box_lo, scene.box_hi, TERMINATION_RAYS, TERMINATION_SEED)
+    for res, per_ray in sample.changes:
+        assert per_ray == pytest.approx(float(Grid.uniform(scene, res).count(o, d, changes=True)[-1].mean()),
+                                        rel=1e-12)
+    assert any(c > 0 for _, c in sample.changes)
+    k = dict(t_setup_ns=50.0, t_step_ns=5.0, t_int_ns=1.0, t_sub_ns=40.0, t_visit_ns=5.0)
+    p = predict(scene, constants=k, levels="1")
+    res = tuple(p["levels"][0]["resolution"])
+    q = p["predicted"]
+    stats = replace(scene.stats, termination=sample)
+    assert q["changes_per_ray"] == pytest.approx(occupancy_changes(stats, res), rel=1e-9)
+    assert q["visits_per_ray"] >= q["changes_per_ray"] > 0
+    want = 50.0 + 5.0 * q["steps_per_ray"] + 1.0 * q["tests_per_ray"] + 5.0 * q["visits_per_ray"]
+    assert q["ns_per_ray"]["median"] == pytest.approx(want, rel=1e-9)
 
 
 # -- predictions ----------------------------------------------------------------------------------------
