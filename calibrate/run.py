@@ -213,6 +213,12 @@ def with_cache(recs, cache_size: int) -> list:
             if r["kind"] == "in_context" else r for r in recs]
 
 
+#: Log-posterior margin within which cache sizes count as tied (:func:`select_cache`): the
+#: likelihood-ratio margin that gates an optional term (calfile.MEMORY_MIN_GAIN, half the 5%
+#: point of chi-square with one degree of freedom).
+CACHE_SCORE_MARGIN = calfile.MEMORY_MIN_GAIN
+
+
 def select_cache(recs, candidates, seed: int = 0, priors=None) -> tuple[int, dict]:
     """(bytes, {bytes: score}): the cache size C among ``candidates`` whose memory term fits the
     in-context timings best (models/memory.py: which cache a traversal runs out of differs by host).
@@ -221,7 +227,15 @@ def select_cache(recs, candidates, seed: int = 0, priors=None) -> tuple[int, dic
     (:func:`calibrate.fit.max_log_posterior`) of that set's fitted configurations (held-back
     ones are not looked at) with every term the design carries and ``misses`` counted against
     C: the same terms and values for every candidate, so the scores compare as log-likelihoods.
-    A candidate whose fit fails scores -inf; ties go to the smaller cache.
+    A candidate whose fit fails scores -inf.  Of the candidates within CACHE_SCORE_MARGIN of
+    the best score, which the timings do not tell apart, the largest is taken: it charges the
+    memory term to the fewest grids.  A smaller one taxes every step and test of the mid-size
+    grids, which is what the suite's few grids between the caches cannot tell from T_step and
+    T_int: a run whose 4 MiB scored 108.4 against 107.4 for 16 MiB fitted its isotropic rays
+    with T_mem 2.0 ns a line beyond 4 MiB and r 0.31 [0.22, 0.52], whose plans were 20-27% a
+    side finer than the measured best on the sphere and the armadillo (+0.6%, +4.7%) where
+    the same timings with C = 16 MiB plan within 10% (docs/calibration.md, "Occupancy changes
+    priced, and the cache size").
     """
     ctx = [r for r in recs if r["kind"] == "in_context" and r["values_ns"] and not r.get("held_back")]
     sets = sorted({r.get("ray_set") for r in ctx}, key=str)
@@ -237,7 +251,8 @@ def select_cache(recs, candidates, seed: int = 0, priors=None) -> tuple[int, dic
                 total = -math.inf
                 break
         scores[int(c)] = total
-    return max(scores, key=lambda c: (scores[c], -c)), scores
+    best = max(scores.values())
+    return max(c for c, v in scores.items() if v >= best - CACHE_SCORE_MARGIN), scores
 
 
 def _priors(isolated):

@@ -171,6 +171,22 @@ def test_the_run_picks_the_cache_size_planted_in_the_timings(i, planted_cache):
     assert_planted_recovered(result, truth, ("t_step_ns", "t_int_ns", "t_mem_ns"), rel=0.1)
 
 
+@pytest.mark.parametrize("at_16, chosen", [(107.4, 16 << 20), (106.6, 16 << 20), (106.4, 4 << 20)])
+def test_cache_sizes_the_timings_do_not_tell_apart_go_to_the_largest(monkeypatch, at_16, chosen):
+    """Planted scores (a run's: 4 MiB best at 108.4): a larger cache within CACHE_SCORE_MARGIN
+    (1.92) of the best is taken; 2 points below it is not."""
+    from calibrate import run
+
+    assert run.CACHE_SCORE_MARGIN == pytest.approx(1.92)
+    planted = {1 << 20: 98.3, 2 << 20: 99.0, 4 << 20: 108.4, 8 << 20: 104.3, 16 << 20: at_16, 32 << 20: 103.6}
+    monkeypatch.setattr(run, "with_cache", lambda recs, c: [dict(r, cache=c) for r in recs])
+    monkeypatch.setattr(run.calfile, "design_from_measurements", lambda group, kind: {"cache": group[0]["cache"]})
+    monkeypatch.setattr(run._fit, "max_log_posterior", lambda design, seed, priors=None: planted[design["cache"]])
+    recs = [dict(kind="in_context", ray_set="isotropic", values_ns=[1.0], held_back=False)]
+    got, scores = run.select_cache(recs, sorted(planted), seed=0)
+    assert got == chosen and scores == planted
+
+
 def test_with_cache_counts_the_misses_of_in_context_records_only():
     from calibrate import run
 
