@@ -125,7 +125,7 @@ def _fmt_est(est) -> tuple[str, str, str]:
 
 CONSTANT_LABELS = [("t_setup_ns", "T_setup (ns/ray)"), ("t_step_ns", "T_step (ns/cell)"),
                    ("t_int_ns", "T_int (ns/test)"), ("t_sub_ns", "T_sub (ns/subgrid)"),
-                   ("t_mem_ns", "T_mem (ns/line beyond cache)"), ("t_visit_ns", "T_visit (ns/occupied cell)"),
+                   ("t_mem_ns", "T_mem (ns/line beyond cache)"), ("t_visit_ns", "T_visit (ns/occupied cell or change)"),
                    ("t_hit_ns", "T_hit (ns/ray that hits)"), ("ratio", "r = T_int/T_step")]
 
 

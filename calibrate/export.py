@@ -42,9 +42,10 @@ CONSTANTS = (("t_setup_ns", "GRIDCAL_T_SETUP_NS", "T_setup, cost of one ray's se
              ("t_mem_ns", "GRIDCAL_T_MEM_NS", "T_mem, cost of one cache line fetched from beyond the cache "
               "(the memory effect, GRIDCAL_CACHE_BYTES below; `calibrate predict` adds it, the resolution "
               "functions of this header do not)", "ns per cache line"),
-             ("t_visit_ns", "GRIDCAL_T_VISIT_NS", "T_visit, cost of entering one cell that holds triangles, beyond "
-              "its step (`calibrate predict` adds it, the resolution functions of this header do not)",
-              "ns per occupied cell entered"),
+             ("t_visit_ns", "GRIDCAL_T_VISIT_NS", "T_visit, cost of entering one cell that holds triangles, and of "
+              "each change of occupancy along a walk, beyond the step (`calibrate predict` adds it, the resolution "
+              "functions of this header do not)",
+              "ns per occupied cell entered or change of occupancy"),
              ("t_hit_ns", "GRIDCAL_T_HIT_NS", "T_hit, cost of a ray's hit beyond its tests (`calibrate predict` "
               "adds it for the share of rays that hit; the resolution functions of this header do not)",
               "ns per ray that hits"),
