@@ -232,10 +232,11 @@ def select_cache(recs, candidates, seed: int = 0, priors=None) -> tuple[int, dic
     memory term to the fewest grids.  A smaller one taxes every step and test of the mid-size
     grids, which is what the suite's few grids between the caches cannot tell from T_step and
     T_int: a run whose 4 MiB scored 108.4 against 107.4 for 16 MiB fitted its isotropic rays
-    with T_mem 2.0 ns a line beyond 4 MiB and r 0.31 [0.22, 0.52], whose plans were 20-27% a
-    side finer than the measured best on the sphere and the armadillo (+0.6%, +4.7%) where
-    the same timings with C = 16 MiB plan within 10% (docs/calibration.md, "Occupancy changes
-    priced, and the cache size").
+    with T_mem 2.0 ns a line beyond 4 MiB and r 0.31 [0.22, 0.52], whose plans were 25-58% a
+    side finer than the measured best on the bunny, the armadillo and Sponza (+5.8%, +4.7%,
+    +15.3%), where the same timings with C = 16 MiB plan within 4% (docs/calibration.md,
+    "Occupancy changes priced, and the cache size").  When every candidate fails, the
+    smallest is returned (its fit then says why).
     """
     ctx = [r for r in recs if r["kind"] == "in_context" and r["values_ns"] and not r.get("held_back")]
     sets = sorted({r.get("ray_set") for r in ctx}, key=str)
@@ -252,6 +253,8 @@ def select_cache(recs, candidates, seed: int = 0, priors=None) -> tuple[int, dic
                 break
         scores[int(c)] = total
     best = max(scores.values())
+    if not math.isfinite(best):
+        return min(scores), scores
     return max(c for c, v in scores.items() if v >= best - CACHE_SCORE_MARGIN), scores
 
 

@@ -13,6 +13,7 @@ the effect matters.
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -185,6 +186,8 @@ def test_cache_sizes_the_timings_do_not_tell_apart_go_to_the_largest(monkeypatch
     recs = [dict(kind="in_context", ray_set="isotropic", values_ns=[1.0], held_back=False)]
     got, scores = run.select_cache(recs, sorted(planted), seed=0)
     assert got == chosen and scores == planted
+    planted = dict.fromkeys(planted, -math.inf)  # every fit failed: the smallest, as before
+    assert run.select_cache(recs, sorted(planted), seed=0)[0] == 1 << 20
 
 
 def test_with_cache_counts_the_misses_of_in_context_records_only():
