@@ -11,7 +11,10 @@ the terms :func:`models.effects.select_effects` keeps) beside the instrumented
 kernel's on ``--rays`` isotropic rays (seeded).  Counting only: nothing is timed, so
 the figures are the same on every run and every host.
 
-Also printed, per grid, two figures behind the test count:
+Also printed, per grid, the changes of occupancy per ray (the model's,
+:func:`models.general.occupancy_changes` from the termination sample's grids, and the
+kernel's; the median and worst absolute difference at the end), and two figures behind
+the test count:
 
 - ``tests/visit``: the kernel's tests per occupied cell entered, beside ``R/occ``,
   the model's references per occupied cell (:func:`models.general.expected_refs` over
@@ -43,7 +46,7 @@ from calibrate._grid import Grid
 from calibrate.rays import isotropic
 from compare_all import MESHES, scene_names  # this folder: the scripts run as files
 from models.effects import select_effects
-from models.general import occupied_cells, predict_uniform
+from models.general import occupancy_changes, occupied_cells, predict_uniform
 
 RAY_SEED = 1
 
@@ -71,18 +74,21 @@ def measure_scene(scene: Scene, source: dict, scales, n_rays: int) -> list[dict]
     rows = []
     for s in scales:
         res = P._scaled(centre, s)
-        steps, tests, refs, _, visits, _ = P._uniform_counts(stats, res, k, sel.terms)
+        steps, tests, refs, _, priced_visits, _ = P._uniform_counts(stats, res, k, sel.terms)
+        changes = occupancy_changes(stats, res)
+        visits = priced_visits - changes  # _uniform_counts' visits are what T_visit prices: both
         occ = occupied_cells(stats, res)
-        ks, kt, _, kv = Grid.uniform(scene, res, "watertight").count(o, d, visits=True)
-        ks, kt, kv = float(ks.mean()), float(kt.mean()), float(kv.mean())
+        ks, kt, _, kv, kc = Grid.uniform(scene, res, "watertight").count(o, d, visits=True, changes=True)
+        ks, kt, kv, kc = float(ks.mean()), float(kt.mean()), float(kv.mean()), float(kc.mean())
         per_occ = refs / occ if occ > 0 else float("nan")
         _, _, by_distance = predict_uniform(stats, res, 0.0, 1.0, 1.0, overlap="exact", terms=sel.terms)
         rows.append(dict(scene=scene.name, scale=s, resolution=list(res), separate_fraction=fsep,
-                         model=dict(steps=steps, tests=tests, visits=visits, refs_per_occupied=per_occ,
-                                    tests_by_distance=by_distance),
-                         kernel=dict(steps=ks, tests=kt, visits=kv, tests_per_visit=kt / kv if kv > 0 else None),
+                         model=dict(steps=steps, tests=tests, visits=visits, changes=changes,
+                                    refs_per_occupied=per_occ, tests_by_distance=by_distance),
+                         kernel=dict(steps=ks, tests=kt, visits=kv, changes=kc,
+                                     tests_per_visit=kt / kv if kv > 0 else None),
                          error=dict(steps=_rel(steps, ks), tests=_rel(tests, kt), visits=_rel(visits, kv),
-                                    tests_by_distance=_rel(by_distance, kt))))
+                                    changes=changes - kc, tests_by_distance=_rel(by_distance, kt))))
     return rows
 
 
@@ -115,7 +121,7 @@ def main() -> None:
     print(f"constants: {args.calibration or f'r = {args.ratio}'}; {args.rays} isotropic rays a grid; "
           f"scales {' '.join(f'{s:g}' for s in args.scales)} of the planned L1 resolution")
     print(f"{'scene':24s} {'scale':>5s} {'resolution':>12s}  {'steps':>6s} {'tests':>6s} {'visits':>6s}  "
-          f"{'tests/visit':>11s} {'R/occ':>6s} {'by distance':>11s}")
+          f"{'tests/visit':>11s} {'R/occ':>6s} {'by distance':>11s}  {'changes (model, kernel)':>23s}")
     rows = []
     for name in names:
         scene = Scene.load(name)
@@ -125,13 +131,17 @@ def main() -> None:
             tpv = "-" if kk["tests_per_visit"] is None else f"{kk['tests_per_visit']:.1f}"
             print(f"{Path(r['scene']).name[:24]:24s} {r['scale']:5.2f} {'x'.join(map(str, r['resolution'])):>12s}  "
                   f"{_pct(e['steps'])} {_pct(e['tests'])} {_pct(e['visits'])}  {tpv:>11s} "
-                  f"{m['refs_per_occupied']:6.1f} {_pct(e['tests_by_distance']):>11s}", flush=True)
+                  f"{m['refs_per_occupied']:6.1f} {_pct(e['tests_by_distance']):>11s}  "
+                  f"{m['changes']:11.2f} {kk['changes']:11.2f}", flush=True)
     print("\nmedian |model / kernel - 1| over every grid (and the worst):")
     for key, label in (("steps", "steps"), ("tests", "tests"), ("visits", "occupied cells entered"),
                        ("tests_by_distance", "tests by the distance")):
         v = np.array([abs(r["error"][key]) for r in rows if r["error"][key] is not None])
         if v.size:
             print(f"  {label:26s} {100 * np.median(v):6.1f}%  (worst {100 * v.max():.0f}%)")
+    v = np.array([abs(r["error"]["changes"]) for r in rows])
+    if v.size:  # a scan's rays make 1.6-1.8 at every size, a coarse cylinder's none: absolute, per ray
+        print(f"  {'changes of occupancy':26s} {np.median(v):6.2f} a ray  (worst {v.max():.2f})")
     if args.out:
         Path(args.out).write_text(json.dumps(P.json_ready(dict(rows=rows)), indent=1))
     sys.stdout.flush()
