@@ -123,13 +123,12 @@ def _baseline_specs(pred: dict) -> dict:
 def _model_counts(stats, terms, spec: GridSpec, point: dict) -> tuple[float, float, float, float, str]:
     """(steps, tests, subgrids, visits, source) of the predicted curve at one sweep point, the visits
     what T_visit prices: occupied cells entered and changes of occupancy."""
-    from models.general import occupancy_changes, predict_uniform, stopped_tests_per_ray, visits_per_ray
+    from models.general import predict_uniform, stopped_tests_per_ray
 
     if spec.kind == "uniform":
         _, steps, _ = predict_uniform(stats, spec.top, 0.0, 1.0, 1.0, overlap="exact", terms=terms)
         tests = stopped_tests_per_ray(stats, spec.top, terms=terms)
-        visits = visits_per_ray(stats, spec.top, terms=terms) + occupancy_changes(stats, spec.top)
-        return steps, tests, 0.0, visits, "model"
+        return steps, tests, 0.0, _predict._priced_visits(stats, spec.top, terms), "model"
     return (point["steps"], point["tests"], point["subgrids"], point.get("visits", 0.0) + point.get("changes", 0.0),
             "kernel")
 

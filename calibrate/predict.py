@@ -626,19 +626,23 @@ def _effect_dicts(sel):
     return [dict(name=e.name, used=bool(e.used), change=float(e.change), reason=e.reason) for e in sel.effects]
 
 
+def _priced_visits(stats, res, terms) -> float:
+    """What T_visit prices per ray in a uniform grid at ``res``: the occupied cells entered
+    (:func:`models.general.visits_per_ray`) and the changes of occupancy
+    (:func:`models.general.occupancy_changes`)."""
+    return visits_per_ray(stats, res, terms=terms) + occupancy_changes(stats, res)
+
+
 def _uniform_counts(stats, res, k: Constants, terms):
     """(steps, tests, references, memory bytes, visits, charged bytes) of a uniform grid under
     the general model (the tests of rays that stop: :func:`models.general.stopped_tests_per_ray`);
-    the visits are what T_visit prices, the occupied cells entered
-    (:func:`models.general.visits_per_ray`) and the changes of occupancy
-    (:func:`models.general.occupancy_changes`); the charged bytes are what the memory term
-    prices (:func:`charged_bytes`), the memory bytes the grid's."""
+    the visits are what T_visit prices (:func:`_priced_visits`); the charged bytes are what the
+    memory term prices (:func:`charged_bytes`), the memory bytes the grid's."""
     _, steps, _ = predict_uniform(stats, res, k.t_setup, k.t_step, k.t_int, overlap="exact", terms=terms)
     tests = stopped_tests_per_ray(stats, res, terms=terms)
     refs = expected_refs(stats, res, overlap="exact")
     mem = _memory_bytes(res[0] * res[1] * res[2], refs, 1)
-    return (steps, tests, refs, mem, visits_per_ray(stats, res, terms=terms) + occupancy_changes(stats, res),
-            charged_bytes(stats, res, k, steps, tests, mem))
+    return steps, tests, refs, mem, _priced_visits(stats, res, terms), charged_bytes(stats, res, k, steps, tests, mem)
 
 
 def charged_bytes(stats, res, k: Constants, steps, tests, memory_bytes) -> float:
@@ -1377,8 +1381,8 @@ def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analyt
         res1 = plan["levels"][0]["resolution"]
         _, m_steps, _ = predict_uniform(stats, res1, 0.0, 1.0, 1.0, overlap="exact", terms=terms)
         m_tests = stopped_tests_per_ray(stats, res1, terms=terms)
-        predicted["model_cost_per_ray"] = k.cost(m_steps, m_tests, 0.0, plan_bytes, visits_per_ray(
-            stats, res1, terms=terms) + occupancy_changes(stats, res1), hits)
+        predicted["model_cost_per_ray"] = k.cost(m_steps, m_tests, 0.0, plan_bytes,
+                                                 _priced_visits(stats, res1, terms), hits)
     elif "counts" in plan:
         # the model's counts, also for a simulated plan (whose steps and tests are the kernel's)
         steps, tests, subgrids, visits = _terminated_nested(plan["counts"], stats, terms.traversed_fraction)

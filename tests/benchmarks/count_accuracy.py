@@ -46,7 +46,7 @@ from calibrate._grid import Grid
 from calibrate.rays import isotropic
 from compare_all import MESHES, scene_names  # this folder: the scripts run as files
 from models.effects import select_effects
-from models.general import occupancy_changes, occupied_cells, predict_uniform
+from models.general import occupancy_changes, occupied_cells, predict_uniform, visits_per_ray
 
 RAY_SEED = 1
 
@@ -74,9 +74,8 @@ def measure_scene(scene: Scene, source: dict, scales, n_rays: int) -> list[dict]
     rows = []
     for s in scales:
         res = P._scaled(centre, s)
-        steps, tests, refs, _, priced_visits, _ = P._uniform_counts(stats, res, k, sel.terms)
-        changes = occupancy_changes(stats, res)
-        visits = priced_visits - changes  # _uniform_counts' visits are what T_visit prices: both
+        steps, tests, refs, _, _, _ = P._uniform_counts(stats, res, k, sel.terms)
+        visits, changes = visits_per_ray(stats, res, terms=sel.terms), occupancy_changes(stats, res)
         occ = occupied_cells(stats, res)
         ks, kt, _, kv, kc = Grid.uniform(scene, res, "watertight").count(o, d, visits=True, changes=True)
         ks, kt, kv, kc = float(ks.mean()), float(kt.mean()), float(kv.mean()), float(kc.mean())
