@@ -417,7 +417,7 @@ def test_deeper_grids_need_a_gain_beyond_the_models_misfit(l2, l3, depth):
     assert "3%" in effects[-1]["reason"]
 
 
-def test_the_depth_rule_prices_a_plan_on_the_bytes_it_charges():
+def test_the_depth_rule_prices_a_plan_on_the_bytes_it_charges(one_capacity):
     """A uniform plan whose memory term charges fewer bytes than its grid holds (what rays read,
     models.memory.read_bytes) is priced on those in the depth rule, as its own prediction is: planted,
     a 64 MiB grid charged as 8 MiB against a 16 MiB cache costs its steps alone and beats a nested
@@ -519,3 +519,22 @@ def test_the_json_constants_price_the_predicted_counts(levels):
     priced = (c["t_setup"] + c["t_step"] * p["steps_per_ray"] + c["t_int"] * p["tests_per_ray"]
               + c["t_sub"] * p["subgrids_per_ray"] + c["t_visit"] * p["visits_per_ray"])
     assert p["model_cost_per_ray"] == pytest.approx(priced, rel=1e-9)
+
+
+def test_the_axis_search_goes_down_to_one_cell_an_axis():
+    """Planted constants of an isotropic fit with the memory term (T_mem 33.6 ns a line beyond a
+    16 MiB cache): the model's cheapest grid for ``cylinder19996`` has 2-3 cells along its axis,
+    far below the 1/64 of the near-cubic start (106x106x525) the search was once bounded by,
+    which stopped it at 8 (measured, the grids of 4 cells along it trace fastest)."""
+    from calibrate.predict import _axis_search, _priced
+
+    k = resolve_constants(constants=dict(t_setup_ns=44.5, t_step_ns=6.42, t_int_ns=1.54, t_sub_ns=54.2,
+                                         t_mem_ns=33.6, t_visit_ns=9.47, cache_bytes=16 * 2 ** 20))
+    stats = scene_statistics(Scene.builtin("cylinder19996"))
+    terms = select_effects(stats, k.t_setup, k.t_step, k.t_int, mailbox=False, termination=True,
+                           overlap="exact", levels=1).terms
+    start = (106, 106, 525)
+    got, cost, _ = _axis_search(stats, k, terms, start, _priced(stats, start, k, terms)[0])
+    assert got[2] <= 4 < 525 / 64
+    bounded = min(_priced(stats, (x, y, 8), k, terms)[0] for x, y in ((got[0], got[1]), (182, 133)))
+    assert cost < 0.97 * bounded
