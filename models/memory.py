@@ -18,9 +18,18 @@ expected number of cache lines a ray fetches from beyond the cache:
 - A test reads one reference's copy of its triangle (72 bytes of coordinates,
   stored with the reference in a pack of four; the 4-byte face index beside
   them is read only on a hit): ``TEST_LINES = 72 / 64`` lines.
-- ``miss_fraction(F, C) = max(0, 1 - C / F)``: the share of a grid of F bytes
-  that a cache of C bytes cannot hold, i.e. the chance that a line touched at
-  random is not cached.  0 while the grid fits.
+- ``miss_fraction(F, C)``: the share of a grid of F bytes that the cache cannot
+  hold, i.e. the chance that a line touched at random is not cached.  For one
+  cache of C bytes it is ``max(0, 1 - C / F)``, 0 while the grid fits.  The
+  cache a traversal runs out of is not one size, so C is the middle of a
+  spread of capacities (a normal law in log2 of the capacity, one octave wide:
+  CACHE_SPREAD_OCTAVES) and the share is the mean of ``max(0, 1 - C' / F)``
+  over it.  One hard C put a cliff in the cost at C: a grid 15% over an 8 MiB
+  cache paid 13% of its lines, and the plan searched around the armadillo's
+  9 MiB optimum jumped to 15x17x13 under the cliff (+34% measured); the
+  calibrations kept a different C from run to run (8 or 16 MiB, whose fits
+  differ by 50% in r), and the spread fits every run's timings better
+  (docs/calibration.md, "A spread of cache sizes").
 
 C is the cache the traversal runs out of.  Which level that is depends on the
 host: on a Xeon whose level-3 share is small the level-2 cache (1-2 MiB); on a
@@ -35,6 +44,8 @@ the other constants.  Pure math: no clocks, no kernels.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 __all__ = ["LINE_BYTES", "STEP_LINES", "TEST_LINES", "miss_fraction", "lines_beyond_cache", "candidate_cache_sizes",
@@ -48,8 +59,32 @@ STEP_LINES = 1.0
 TEST_LINES = 72.0 / LINE_BYTES
 
 
+#: The cache a traversal runs out of is not one size: the level-2 cache, the level-3 share
+#: the neighbours leave, the lines the prefetchers bring.  ``cache_bytes`` C is the middle of
+#: a spread of capacities C 2^(j/2), j = -CACHE_SPREAD_STEPS .. CACHE_SPREAD_STEPS, weighted
+#: as a normal law in log2 of the capacity with CACHE_SPREAD_OCTAVES standard deviation, and
+#: a share of bytes misses as the weighted mean of what each capacity misses.  One hard
+#: capacity (the spread 0) puts a cliff at C: a grid a little over C pays a tenth of its
+#: lines, one a little under nothing, and a plan searched near C escapes under it.
+CACHE_SPREAD_OCTAVES = 1.0
+CACHE_SPREAD_STEPS = 6
+
+
+def _capacities(cache_bytes):
+    """[(weight, capacity)] of the spread around ``cache_bytes`` (weights sum to 1)."""
+    c = float(cache_bytes)
+    if CACHE_SPREAD_OCTAVES <= 0:
+        return [(1.0, c)]
+    j = np.arange(-CACHE_SPREAD_STEPS, CACHE_SPREAD_STEPS + 1, dtype=np.float64)
+    w = np.exp(-0.5 * (0.5 * j / CACHE_SPREAD_OCTAVES) ** 2)
+    w /= w.sum()
+    return [(float(wj), c * 2.0 ** (0.5 * jj)) for wj, jj in zip(w, j)]
+
+
 def miss_fraction(memory_bytes, cache_bytes):
-    """max(0, 1 - cache_bytes / memory_bytes), elementwise; 0 for an empty grid or no cache size.
+    """The mean of max(0, 1 - C' / memory_bytes) over the capacities C' of the spread around
+    ``cache_bytes`` (:data:`CACHE_SPREAD_OCTAVES`), elementwise; 0 for an empty grid or no cache
+    size, 0 below the spread's smallest capacity, rising smoothly to 1.
 
     memory_bytes : grid bytes (>= 0, array-like); cache_bytes : bytes of the cache (> 0) or None.
     """
@@ -61,13 +96,16 @@ def miss_fraction(memory_bytes, cache_bytes):
         raise ValueError(f"cache_bytes must be a finite number > 0, got {cache_bytes!r}")
     if np.any(~np.isfinite(f)) or np.any(f < 0):
         raise ValueError("memory_bytes must be finite and >= 0")
-    with np.errstate(divide="ignore"):
-        out = np.where(f > c, 1.0 - c / np.where(f > 0, f, 1.0), 0.0)
+    out = np.zeros_like(f)
+    safe = np.where(f > 0, f, 1.0)
+    for w, cj in _capacities(c):
+        out += w * np.where(f > cj, 1.0 - cj / safe, 0.0)
     return out
 
 
 def weighted_miss_fraction(rates, sizes, cache_bytes) -> float:
-    """The share of the bytes read that miss a cache of ``cache_bytes``, when item ``i`` (a cell's
+    """The share of the bytes read that miss a cache of ``cache_bytes`` (the mean over the spread
+    of capacities around it, as :func:`miss_fraction`), when item ``i`` (a cell's
     record and reference list) of ``sizes[i]`` bytes is read whole at ``rates[i]`` reads per ray
     (Che's approximation of a least-recently-used cache under independent reads).
 
@@ -91,13 +129,20 @@ def weighted_miss_fraction(rates, sizes, cache_bytes) -> float:
         raise ValueError(f"rates and sizes must have the same length, got {lam.size} and {b.size}")
     if not (np.all(np.isfinite(lam)) and np.all(lam >= 0) and np.all(np.isfinite(b)) and np.all(b >= 0)):
         raise ValueError("rates and sizes must be finite and >= 0")
-    c = float(cache_bytes)
-    if not (np.isfinite(c) and c > 0):
+    c0 = float(cache_bytes)
+    if not (np.isfinite(c0) and c0 > 0):
         raise ValueError(f"cache_bytes must be a finite number > 0, got {cache_bytes!r}")
     read = lam > 0
     lam, b = lam[read], b[read]
     traffic = float(np.sum(lam * b))
-    if traffic <= 0.0 or float(b.sum()) <= c:
+    if traffic <= 0.0:
+        return 0.0
+    return float(sum(w * _che_miss(lam, b, traffic, c) for w, c in _capacities(c0)))
+
+
+def _che_miss(lam, b, traffic, c) -> float:
+    """Che's share of the bytes read that miss one capacity ``c`` (weighted_miss_fraction)."""
+    if float(b.sum()) <= c:
         return 0.0
 
     # held(t) = sum b (1 - exp(-lam t)) rises and is concave from held(0) = 0 to sum b > c: Newton's
@@ -120,9 +165,9 @@ READ_RATE_BINS = 48
 def read_bytes(triangles, extent, resolution, steps, tests, memory_bytes, cache_bytes,
                reference_bytes: float = 76.0, cell_bytes: float = 8.0) -> float:
     """The grid bytes the memory term charges a uniform grid: ``memory_bytes`` where the grid fits
-    the cache or nothing says where rays read; beyond it, the size F' whose ``1 - C/F'`` is the
-    share of the bytes read that misses (:func:`weighted_miss_fraction`) when each cell is
-    read as often as rays stop in it.
+    the spread's smallest capacity or nothing says where rays read; beyond it, the size F' whose
+    :func:`miss_fraction` is the share of the bytes read that misses
+    (:func:`weighted_miss_fraction`) when each cell is read as often as rays stop in it.
 
     Rays stop at the surface, and a cell is entered in proportion to the surface it holds:
     isotropic lines meet a surface element in proportion to its area (Crofton), and a
@@ -145,7 +190,9 @@ def read_bytes(triangles, extent, resolution, steps, tests, memory_bytes, cache_
     cache_bytes : the grid's bytes and the cache's (None: no memory term).
     """
     mem = float(memory_bytes)
-    if triangles is None or cache_bytes is None or not mem > float(cache_bytes) or not tests > 0:
+    if triangles is None or cache_bytes is None or not tests > 0:
+        return mem
+    if not mem > _capacities(cache_bytes)[0][1]:  # fits the smallest capacity of the spread
         return mem
     ext = np.asarray(extent, dtype=np.float64)
     n = np.asarray(resolution, dtype=np.float64)
@@ -173,8 +220,21 @@ def read_bytes(triangles, extent, resolution, steps, tests, memory_bytes, cache_
     rates = np.concatenate([pooled_rate[keep] / pooled_size[keep], [max(float(steps), 0.0) / cells]])
     sizes = np.concatenate([pooled_size[keep], [cell_bytes * cells]])
     miss = weighted_miss_fraction(rates, sizes, cache_bytes)
-    charged = float(cache_bytes) / (1.0 - miss) if miss < 1.0 else mem
-    return float(min(mem, charged)) if miss > 0.0 else min(mem, float(cache_bytes))
+    if not miss > 0.0:
+        return min(mem, _capacities(cache_bytes)[0][1])
+    if not miss < float(miss_fraction(mem, cache_bytes)):
+        return mem
+    # the bytes F' whose miss_fraction is the share read that misses: miss_fraction rises with F
+    caps = _capacities(cache_bytes)
+    lo, hi = math.log(caps[0][1]), math.log(mem)
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        f = math.exp(mid)
+        if sum(w * (1.0 - c / f) for w, c in caps if f > c) < miss:
+            lo = mid
+        else:
+            hi = mid
+    return float(min(mem, math.exp(hi)))
 
 
 def lines_beyond_cache(steps, tests, memory_bytes, cache_bytes):

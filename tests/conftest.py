@@ -115,3 +115,12 @@ def exported_header(cal: dict, tmp_path: Path, condition: str) -> str:
                     "-o", str(tmp_path / "use"), "-lm"], check=True)
     assert subprocess.run([str(tmp_path / "use")]).returncode == 0
     return header.read_text()
+
+
+@pytest.fixture
+def one_capacity(monkeypatch):
+    """The memory model with one cache size instead of the spread around it
+    (models.memory.CACHE_SPREAD_OCTAVES = 0): the single-capacity laws under test."""
+    import models.memory
+
+    monkeypatch.setattr(models.memory, "CACHE_SPREAD_OCTAVES", 0.0)

@@ -25,7 +25,7 @@ from calibrate.predict import _uniform_counts, predict, resolve_constants, scene
 from conftest import assert_planted_recovered, exported_header, planted_counts
 from models.effects import select_effects
 from models.memory import (LINE_BYTES, STEP_LINES, TEST_LINES, candidate_cache_sizes, lines_beyond_cache,
-                           miss_fraction)
+                           miss_fraction, weighted_miss_fraction)
 from models.uncertainty import discrete_posterior_optimum
 
 RAYS = 2048
@@ -40,7 +40,7 @@ N_REPEATS = 5
 
 # -- the model ---------------------------------------------------------------------------
 
-def test_miss_fraction_is_zero_while_the_grid_fits_and_one_minus_c_over_f_beyond():
+def test_miss_fraction_is_zero_while_the_grid_fits_and_one_minus_c_over_f_beyond(one_capacity):
     f = np.array([0.0, 1.0, CACHE / 2, CACHE, 2.0 * CACHE, 8.0 * CACHE, 1e15])
     got = miss_fraction(f, CACHE)
     want = np.where(f > CACHE, 1.0 - CACHE / np.maximum(f, 1.0), 0.0)
@@ -57,7 +57,64 @@ def test_miss_fraction_rejects_bad_sizes(cache, memory):
         miss_fraction(memory, cache)
 
 
-def test_lines_count_one_line_a_step_and_a_triangle_copy_a_test():
+def _spread(cache):
+    """The spread of capacities as docs/calibration.md states it: C 2^(j/2), j = -6..6, weighted by
+    a normal law in log2 of the capacity, one octave wide."""
+    j = np.arange(-6, 7)
+    w = np.exp(-0.5 * (j / 2.0) ** 2)
+    return w / w.sum(), cache * 2.0 ** (j / 2.0)
+
+
+def test_the_miss_fraction_is_the_mean_of_one_cache_law_over_the_spread():
+    import models.memory as mm
+
+    assert mm.CACHE_SPREAD_OCTAVES == 1.0 and mm.CACHE_SPREAD_STEPS == 6
+    f = np.array([0.0, 1.0, CACHE / 8, CACHE / 2, CACHE, 1.5 * CACHE, 4.0 * CACHE, 1e15])
+    w, caps = _spread(CACHE)
+    want = np.array([sum(wj * max(0.0, 1.0 - cj / x) for wj, cj in zip(w, caps)) if x > 0 else 0.0 for x in f])
+    np.testing.assert_allclose(miss_fraction(f, CACHE), want, rtol=1e-12, atol=1e-15)
+    # nothing below the smallest capacity, less than one cache's law beyond the largest
+    assert miss_fraction(caps[0], CACHE) == 0.0
+    assert 0.0 < miss_fraction(8 * CACHE, CACHE) < 1.0 - CACHE / (8 * CACHE)
+
+
+def test_the_spread_puts_no_cliff_at_the_cache(monkeypatch):
+    """With one capacity the share's slope in log F leaps from 0 to 1 at the cache size (a grid
+    just under it pays nothing, one 15% over 13% of its lines); with the spread it turns in
+    thirteen steps of at most a fifth (each capacity's weight), and stays below a half."""
+    import models.memory as mm
+
+    x = np.linspace(-4.0, 4.0, 4001)
+    f = CACHE * np.exp(x)
+
+    def slopes():
+        m = miss_fraction(f, CACHE)
+        return np.diff(m) / np.diff(x)
+
+    spread = slopes()
+    monkeypatch.setattr(mm, "CACHE_SPREAD_OCTAVES", 0.0)
+    one = slopes()
+    assert float(np.max(np.abs(np.diff(one)))) > 0.9  # the cliff: 0 -> 1 between neighbours
+    assert np.all(spread >= 0.0) and float(np.max(np.abs(np.diff(spread)))) < 0.21
+    assert float(np.max(spread)) < 0.5
+
+
+def test_the_weighted_share_is_the_mean_over_the_spread(monkeypatch):
+    import models.memory as mm
+
+    rng = np.random.default_rng(7)
+    rates = rng.pareto(1.5, 300) + 1e-3
+    sizes = rng.integers(1, 8, 300).astype(float) * 64.0
+    cache = 0.3 * float(sizes.sum())
+    got = weighted_miss_fraction(rates, sizes, cache)
+    w, caps = _spread(cache)
+    monkeypatch.setattr(mm, "CACHE_SPREAD_OCTAVES", 0.0)
+    want = sum(wj * weighted_miss_fraction(rates, sizes, cj) for wj, cj in zip(w, caps))
+    assert got == pytest.approx(want, rel=1e-9)
+    assert 0.0 < got < 1.0
+
+
+def test_lines_count_one_line_a_step_and_a_triangle_copy_a_test(one_capacity):
     assert STEP_LINES == 1.0 and TEST_LINES == 72.0 / LINE_BYTES
     f = 4.0 * CACHE  # three quarters of the grid is beyond the cache
     assert lines_beyond_cache(10, 8, f, CACHE) == pytest.approx(0.75 * (10 + 8 * 72 / 64))

@@ -33,14 +33,14 @@ def test_items_read_alike_miss_one_minus_c_over_f(i):
     assert got == pytest.approx(float(miss_fraction(sizes.sum(), cache)), abs=1e-9)
 
 
-def test_what_fits_or_is_never_read_does_not_miss():
+def test_what_fits_or_is_never_read_does_not_miss(one_capacity):
     assert weighted_miss_fraction([0.5, 0.1], [100.0, 200.0], 300.0) == 0.0
     assert weighted_miss_fraction([0.0, 0.0], [1e6, 1e6], 10.0) == 0.0
     # an item never read does not take room: the two read ones fit
     assert weighted_miss_fraction([0.5, 0.5, 0.0], [100.0, 100.0, 1e9], 250.0) == 0.0
 
 
-def test_a_hot_part_that_fits_keeps_the_misses_to_the_cold_rest():
+def test_a_hot_part_that_fits_keeps_the_misses_to_the_cold_rest(one_capacity):
     """Nine tenths of the reads go to a tenth of the bytes: with room for that tenth and a
     little more, the share missed is far below the whole grid's 1 - C/F, and it falls as the
     cache grows."""
@@ -76,7 +76,7 @@ def _lru_miss_share(rates, sizes, cache, reads, seed):
 
 
 @pytest.mark.parametrize("i", range(3))
-def test_the_share_matches_a_simulated_lru_cache(i):
+def test_the_share_matches_a_simulated_lru_cache(i, one_capacity):
     rng = np.random.default_rng(100 + i)
     n = 400
     sizes = rng.integers(1, 8, n).astype(float) * 64.0

@@ -97,12 +97,14 @@ def test_run_writes_a_valid_calibration(small_suite, tmp_path):
     # and its walks' occupancy changes, recorded for analysis (not a term of the fit)
     assert all(0 <= m["changes"] <= m["steps"] for m in cal["measurements"]) and sum(m["changes"] for m in ctx) > 0
     assert cal["meta"]["cache_bytes"] > 0
-    # the cache the memory effect is counted against: one of the sizes tried, the best scored
+    # the cache the memory effect is counted against: one of the sizes tried, the largest of
+    # those scored within CACHE_SCORE_MARGIN of the best (run.select_cache)
     tried = cal["meta"]["cache_candidates"]
     assert cal["meta"]["cache_bytes"] in tried and tried == sorted(tried)
     if len(tried) > 1:
         scores = {int(k): v for k, v in cal["meta"]["cache_scores"].items() if v is not None}
-        assert max(scores, key=scores.get) == cal["meta"]["cache_bytes"]
+        best = max(scores.values())
+        assert cal["meta"]["cache_bytes"] == max(c for c, v in scores.items() if v >= best - run.CACHE_SCORE_MARGIN)
     # the in-context batches are long streams of distinct rays, the isolating ones short
     assert {m["rays"] for m in ctx if m["ray_set"] == "isotropic"} == {suites.CONTEXT_RAYS_PER_BATCH}
     assert {m["rays"] for m in cal["measurements"] if m["kind"] == "isolated"} == {suites.RAYS_PER_BATCH}
