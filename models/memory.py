@@ -44,7 +44,7 @@ the other constants.  Pure math: no clocks, no kernels.
 
 from __future__ import annotations
 
-import math
+import functools
 
 import numpy as np
 
@@ -71,14 +71,19 @@ CACHE_SPREAD_STEPS = 6
 
 
 def _capacities(cache_bytes):
-    """[(weight, capacity)] of the spread around ``cache_bytes`` (weights sum to 1)."""
-    c = float(cache_bytes)
-    if CACHE_SPREAD_OCTAVES <= 0:
-        return [(1.0, c)]
-    j = np.arange(-CACHE_SPREAD_STEPS, CACHE_SPREAD_STEPS + 1, dtype=np.float64)
-    w = np.exp(-0.5 * (0.5 * j / CACHE_SPREAD_OCTAVES) ** 2)
+    """((weight, capacity), ...) of the spread around ``cache_bytes`` (weights sum to 1), smallest
+    capacity first."""
+    return _spread(float(cache_bytes), float(CACHE_SPREAD_OCTAVES), int(CACHE_SPREAD_STEPS))
+
+
+@functools.lru_cache(maxsize=64)
+def _spread(c, octaves, steps):
+    if octaves <= 0:
+        return ((1.0, c),)
+    j = np.arange(-steps, steps + 1, dtype=np.float64)
+    w = np.exp(-0.5 * (0.5 * j / octaves) ** 2)
     w /= w.sum()
-    return [(float(wj), c * 2.0 ** (0.5 * jj)) for wj, jj in zip(w, j)]
+    return tuple((float(wj), c * 2.0 ** (0.5 * jj)) for wj, jj in zip(w, j))
 
 
 def miss_fraction(memory_bytes, cache_bytes):
@@ -96,9 +101,13 @@ def miss_fraction(memory_bytes, cache_bytes):
         raise ValueError(f"cache_bytes must be a finite number > 0, got {cache_bytes!r}")
     if np.any(~np.isfinite(f)) or np.any(f < 0):
         raise ValueError("memory_bytes must be finite and >= 0")
+    caps = _capacities(c)
+    if f.ndim == 0:  # the planner's many single grids: no arrays
+        x = float(f)
+        return np.float64(sum(w * (1.0 - cj / x) for w, cj in caps if x > cj))
     out = np.zeros_like(f)
     safe = np.where(f > 0, f, 1.0)
-    for w, cj in _capacities(c):
+    for w, cj in caps:
         out += w * np.where(f > cj, 1.0 - cj / safe, 0.0)
     return out
 
@@ -137,24 +146,27 @@ def weighted_miss_fraction(rates, sizes, cache_bytes) -> float:
     traffic = float(np.sum(lam * b))
     if traffic <= 0.0:
         return 0.0
-    return float(sum(w * _che_miss(lam, b, traffic, c) for w, c in _capacities(c0)))
-
-
-def _che_miss(lam, b, traffic, c) -> float:
-    """Che's share of the bytes read that miss one capacity ``c`` (weighted_miss_fraction)."""
-    if float(b.sum()) <= c:
+    caps = _capacities(c0)
+    total = float(b.sum())
+    short = [(w, c) for w, c in caps if total > c]  # the capacities that cannot hold every item read
+    if not short:
         return 0.0
+    w = np.array([x[0] for x in short])
+    c = np.array([x[1] for x in short])
 
     # held(t) = sum b (1 - exp(-lam t)) rises and is concave from held(0) = 0 to sum b > c: Newton's
-    # steps from t = 0 stay below the root and approach it monotonically (quadratically near it)
-    t = 0.0
+    # steps from t = 0 stay below the root and approach it monotonically (quadratically near it);
+    # one characteristic time per capacity, all solved at once
+    t = np.zeros_like(c)
     for _ in range(200):
-        e = np.exp(-lam * t)
-        gap = c - float(np.sum(b * (1.0 - e)))
-        if gap <= 1e-12 * c:
+        e = np.exp(-np.outer(t, lam))
+        gap = c - (1.0 - e) @ b
+        going = gap > 1e-12 * c
+        if not going.any():
             break
-        t += gap / float(np.sum(b * lam * e))
-    return float(np.sum(lam * b * np.exp(-lam * t)) / traffic)
+        t = np.where(going, t + gap / np.maximum(e @ (b * lam), np.finfo(np.float64).tiny), t)
+    share = np.exp(-np.outer(t, lam)) @ (lam * b) / traffic
+    return float(w @ share)
 
 
 #: Bins (in the logarithm of the rate) the sampled triangles' read rates are pooled into
@@ -224,17 +236,17 @@ def read_bytes(triangles, extent, resolution, steps, tests, memory_bytes, cache_
         return min(mem, _capacities(cache_bytes)[0][1])
     if not miss < float(miss_fraction(mem, cache_bytes)):
         return mem
-    # the bytes F' whose miss_fraction is the share read that misses: miss_fraction rises with F
+    # the bytes F' whose miss_fraction is the share read that misses: between two capacities of
+    # the spread, miss_fraction(F) = W - S / F (W, S: the weights and the weighted capacities
+    # below F), which rises with F and is solved for F there
     caps = _capacities(cache_bytes)
-    lo, hi = math.log(caps[0][1]), math.log(mem)
-    for _ in range(40):
-        mid = 0.5 * (lo + hi)
-        f = math.exp(mid)
-        if sum(w * (1.0 - c / f) for w, c in caps if f > c) < miss:
-            lo = mid
-        else:
-            hi = mid
-    return float(min(mem, math.exp(hi)))
+    acc_w = acc_s = 0.0
+    for i, (w, c) in enumerate(caps):
+        acc_w += w
+        acc_s += w * c
+        if i + 1 == len(caps) or miss < acc_w - acc_s / caps[i + 1][1]:
+            return float(min(mem, acc_s / (acc_w - miss)))
+    return mem
 
 
 def lines_beyond_cache(steps, tests, memory_bytes, cache_bytes):
