@@ -544,7 +544,8 @@ def header_text(cal: dict | None = None, ratio: float | None = None, source: str
             from .calfile import cache_bytes_of
 
             cache = cache_bytes_of(cal)
-            text += (f"/* The per-core cache T_mem was measured against: bytes. */\n"
+            text += ("/* The cache T_mem was measured against, the middle of a spread of sizes one octave "
+                     "wide (models/memory.py): bytes. */\n"
                      f"#ifndef GRIDCAL_CACHE_BYTES\n#define GRIDCAL_CACHE_BYTES {int(cache)}.0\n#endif\n")
     text += _c_functions()
     text += "\n#endif /* GRIDCAL_GRID_TUNING_H */\n"
