@@ -145,8 +145,8 @@ SEARCH_SCALES = tuple(2.0 ** (j / 8.0) for j in range(-16, 17))
 #: The one-level plan's cells per axis are searched each on its own (nlopt BOBYQA over the
 #: logarithms of the three resolutions), from the plan with cells as near cubes as the box
 #: allows, at most this factor more per axis, and down to one cell (a bound below the start
-#: kept `cylinder19996` at 7 cells along its axis where the model's cheapest has 2: measured,
-#: the grids of 4 cells along it were the fastest).
+#: kept `cylinder19996` at 7-8 cells along its axis where the model's cheapest has 2-3; the
+#: fastest grids measured on its sweeps have 2-5).
 AXIS_SEARCH_SPAN = 16.0
 #: Cells longer along one axis are probed first, that axis's cells divided by each of these
 #: (nine evaluations); the search starts again from the cheapest probe when it beats the
@@ -745,8 +745,8 @@ def _axis_search(stats, k: Constants, terms, res, cost0):
     960 ns at the near-cubic 96x96x474; docs/compare.md, "Cells shaped to the triangles").
     nlopt's BOBYQA minimises the model's cost over the logarithms of the three resolutions
     (down to one cell an axis, up to AXIS_SEARCH_SPAN times the start; AXIS_SEARCH_EVALS
-    evaluations; the counts are continuous in the cell sizes), and again from the cheapest of the AXIS_LONG_CELLS probes (one axis's
-    cells fewer) when that beats the first search; then the floors and ceilings of the result
+    evaluations; the counts are continuous in the cell sizes), and again from the cheapest of
+    the AXIS_LONG_CELLS probes (one axis's cells fewer) when that beats the first search; then the floors and ceilings of the result
     are priced and the cheapest kept, and where two axes' cells can be made equal for at most AXIS_EQUAL_CELLS_TOLERANCE
     more, they are (the search stops anywhere along a flat direction; a round cylinder gets
     square cells across)."""
@@ -756,7 +756,7 @@ def _axis_search(stats, k: Constants, terms, res, cost0):
 
     res = tuple(int(x) for x in res)
     x0 = np.log(np.asarray(res, dtype=np.float64))
-    lo = np.zeros(3)  # down to one cell an axis: cylinder19996's cheapest has 2 along its axis
+    lo = np.zeros(3)  # down to one cell an axis
     hi = np.maximum(lo, np.minimum(math.log(MAX_CELLS_PER_AXIS), x0 + math.log(AXIS_SEARCH_SPAN)))
     evals = [0]
 

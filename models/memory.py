@@ -26,7 +26,7 @@ expected number of cache lines a ray fetches from beyond the cache:
   CACHE_SPREAD_OCTAVES) and the share is the mean of ``max(0, 1 - C' / F)``
   over it.  One hard C put a cliff in the cost at C: a grid 15% over an 8 MiB
   cache paid 13% of its lines, and the plan searched around the armadillo's
-  9 MiB optimum jumped to 15x17x13 under the cliff (+34% measured); the
+  9 MiB optimum jumped to 15x17x13 under the cliff (+28-37% on measured sweeps); the
   calibrations kept a different C from run to run (8 or 16 MiB, whose fits
   differ by 50% in r), and the spread fits every run's timings better
   (docs/calibration.md, "A spread of cache sizes").
@@ -89,7 +89,8 @@ def _spread(c, octaves, steps):
 def miss_fraction(memory_bytes, cache_bytes):
     """The mean of max(0, 1 - C' / memory_bytes) over the capacities C' of the spread around
     ``cache_bytes`` (:data:`CACHE_SPREAD_OCTAVES`), elementwise; 0 for an empty grid or no cache
-    size, 0 below the spread's smallest capacity, rising smoothly to 1.
+    size, 0 below the spread's smallest capacity, rising continuously to 1 (a kink at each
+    capacity, the largest a fifth of one capacity's).
 
     memory_bytes : grid bytes (>= 0, array-like); cache_bytes : bytes of the cache (> 0) or None.
     """

@@ -525,7 +525,7 @@ def test_the_axis_search_goes_down_to_one_cell_an_axis():
     """Planted constants of an isotropic fit with the memory term (T_mem 33.6 ns a line beyond a
     16 MiB cache): the model's cheapest grid for ``cylinder19996`` has 2-3 cells along its axis,
     far below the 1/64 of the near-cubic start (106x106x525) the search was once bounded by,
-    which stopped it at 8 (measured, the grids of 4 cells along it trace fastest)."""
+    which stopped it at 8 (the fastest grids measured on its sweeps have 2-5)."""
     from calibrate.predict import _axis_search, _priced
 
     k = resolve_constants(constants=dict(t_setup_ns=44.5, t_step_ns=6.42, t_int_ns=1.54, t_sub_ns=54.2,
