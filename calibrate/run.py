@@ -533,12 +533,19 @@ def _finish(result, recs, seed, priors, warnings):
 
 def refit_calibration(cal, *, seed: int = 0) -> tuple[dict, list]:
     """``calibrate fit``: a run's fits again on a calibration's stored measurements, by this
-    version's code: the isolating suites (their constants give the in-context priors; a file
+    version's code (the in-context records' ``misses`` counted again against the file's cache
+    size by this version's memory model): the isolating suites (their constants give the in-context priors; a file
     without their measurements keeps its stored priors), the pooled fit, each ray set's, and
     the held-back and cross-validated errors the file reports (``meta``), so that they describe
     the new fit, not the old one.  Returns (validated calibration, warnings)."""
     cal = calfile.validate(calfile._plain(cal))
     recs = calfile.apply_drift(cal["measurements"])
+    cache = calfile.cache_bytes_of(cal)
+    ctx = [r for r in recs if r["kind"] == "in_context"]
+    if cache is not None and ctx and all("misses" in r and "memory_bytes" in r for r in ctx):
+        # the memory effect's count by this version's model: a file written before the spread of
+        # cache sizes (models.memory, 2026-12-06) carries one cache's counts
+        recs = with_cache(recs, cache)
     warnings = []
     if any(r["kind"] == "isolated" and r["values_ns"] for r in recs):
         isolated, iso_warning = _isolated_fit(recs, seed)

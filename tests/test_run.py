@@ -16,6 +16,7 @@ import pytest
 from calibrate import calfile, run, suites
 from calibrate.cli import main
 from calibrate.protocol import Copies, MeasurementInterrupted
+from models.memory import lines_beyond_cache
 
 
 @pytest.fixture
@@ -131,8 +132,15 @@ def test_run_writes_a_valid_calibration(small_suite, tmp_path):
     stale["isolated"] = {}
     for m in stale["measurements"]:  # values_ns are derived: a re-fit derives them again
         m["values_ns"] = [1.0] * len(m["values_ns"])
+        if m["kind"] == "in_context":  # and so are the misses, by this version's memory model
+            m["misses"] = 0.0
     new, warnings = run.refit_calibration(stale, seed=3)
     assert flat(new["measurements"]) == pytest.approx(flat(cal["measurements"]))
+    cache = calfile.cache_bytes_of(cal)
+    assert [m["misses"] for m in new["measurements"] if m["kind"] == "in_context"] == pytest.approx(
+        [m["misses"] for m in cal["measurements"] if m["kind"] == "in_context"])
+    assert all(m["misses"] == pytest.approx(float(lines_beyond_cache(m["steps"], m["tests"], m["memory_bytes"], cache)))
+               for m in new["measurements"] if m["kind"] == "in_context")
     assert new["meta"]["holdout_mare"] == pytest.approx(cal["meta"]["holdout_mare"], rel=0.5, abs=0.02)
     assert new["meta"]["cv_mare"] == pytest.approx(cal["meta"]["cv_mare"], rel=0.5, abs=0.02)
     assert set(new["isolated"]) == set(cal["isolated"])
