@@ -205,7 +205,9 @@ def read_bytes(triangles, extent, resolution, steps, tests, memory_bytes, cache_
     mem = float(memory_bytes)
     if triangles is None or cache_bytes is None or not tests > 0:
         return mem
-    if not mem > _capacities(cache_bytes)[0][1]:  # fits the smallest capacity of the spread
+    caps = _capacities(cache_bytes)
+    smallest = caps[0][1]
+    if not mem > smallest:  # fits the smallest capacity of the spread
         return mem
     ext = np.asarray(extent, dtype=np.float64)
     n = np.asarray(resolution, dtype=np.float64)
@@ -234,13 +236,12 @@ def read_bytes(triangles, extent, resolution, steps, tests, memory_bytes, cache_
     sizes = np.concatenate([pooled_size[keep], [cell_bytes * cells]])
     miss = weighted_miss_fraction(rates, sizes, cache_bytes)
     if not miss > 0.0:
-        return min(mem, _capacities(cache_bytes)[0][1])
+        return min(mem, smallest)
     if not miss < float(miss_fraction(mem, cache_bytes)):
         return mem
     # the bytes F' whose miss_fraction is the share read that misses: between two capacities of
     # the spread, miss_fraction(F) = W - S / F (W, S: the weights and the weighted capacities
     # below F), which rises with F and is solved for F there
-    caps = _capacities(cache_bytes)
     acc_w = acc_s = 0.0
     for i, (w, c) in enumerate(caps):
         acc_w += w
