@@ -446,3 +446,40 @@ def test_the_resolution_interval_comes_from_the_memory_search_over_posterior_sam
     chosen = result["levels"][0]["resolution"]
     assert cells(lo) <= cells(chosen) <= cells(hi) and cells(lo) < cells(hi)
     assert 0.0 <= result["predicted"]["uncertainty_penalty"] < 0.1
+
+
+def _chain_steps(monkeypatch):
+    """A list that collects the steps of every emcee chunk sampled from now on."""
+    import emcee
+
+    steps = []
+    run_mcmc = emcee.EnsembleSampler.run_mcmc
+
+    def counting(self, state, nsteps, **kw):
+        steps.append(int(nsteps))
+        return run_mcmc(self, state, nsteps, **kw)
+
+    monkeypatch.setattr(emcee.EnsembleSampler, "run_mcmc", counting)
+    return steps
+
+
+def test_a_fit_with_an_optional_term_stops_as_soon_as_a_required_constant_is_not_identified(monkeypatch):
+    """With a trial term in, any constant may be the one the data cannot place (measured: the pooled
+    fit of both ray sets with T_mem leaves T_step on a ridge down to 1e-6 ns).  Such a trial ends in
+    the first chunk of the chain, not after a full one: a run's budget goes to measuring."""
+    recs = _records(7, truth=dict(TRUTH, t_step_ns=1e-3, t_mem_ns=12.0))  # steps cost nothing: T_step unplaced
+    design = calfile.design_from_measurements(recs, "in_context")
+    steps = _chain_steps(monkeypatch)
+    with pytest.raises(ValueError, match="T_step is not identified"):
+        F.fit(design, seed=0, priors=PRIORS)
+    full = sum(steps)
+    steps.clear()
+    with pytest.raises(ValueError, match="T_step is not identified"):
+        F.fit(design, seed=0, priors=PRIORS, fail_fast=F.CONSTANT_NAMES)
+    assert sum(steps) == F.FIRST_CHUNK_STEPS < full
+    # fit_in_context tries T_mem that way (one chunk), then fits without it, where T_step's term is
+    # nothing at the posterior maximum: refused before any sampling
+    steps.clear()
+    with pytest.raises(ValueError, match="T_step is not identified"):
+        calfile.fit_in_context(design, seed=0, priors=PRIORS)
+    assert sum(steps) == F.FIRST_CHUNK_STEPS
