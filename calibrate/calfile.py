@@ -663,7 +663,7 @@ OPTIONAL_TERMS = (("visits", "t_visit_ns", "T_visit not fitted, occupied cells a
                   ("hits", "t_hit_ns", "T_hit not fitted, a ray that hits is priced as one that misses"))
 
 
-def fit_in_context(design: Mapping, **fit_kwargs) -> _fit.FitResult:
+def fit_in_context(design: Mapping, deadline: float | None = None, **fit_kwargs) -> _fit.FitResult:
     """:func:`calibrate.fit.fit` with the optional terms the timings call for.
 
     An optional term (T_visit when the design carries ``visits``, then T_mem when it
@@ -679,6 +679,10 @@ def fit_in_context(design: Mapping, **fit_kwargs) -> _fit.FitResult:
     the timings cannot place.  Measured: the pooled fit of both ray sets with T_mem put T_step on
     a ridge down to 1e-6 ns, and the trials ran 10-19 thousand steps (10-13 s of a 60 s run, in
     every stage) before the same verdict; checked after each chunk, 2-4 s.
+
+    ``deadline`` (``time.monotonic()``): a trial whose chain cannot converge by then ends, and
+    its term is left out as for any failed trial; the fit without trial terms has no deadline,
+    so there is always a result.
     """
     design = {k: v for k, v in design.items()
               if k not in OPTIONAL_COUNT_FIELDS or (v is not None and np.any(np.asarray(v) > 0))}
@@ -700,7 +704,8 @@ def fit_in_context(design: Mapping, **fit_kwargs) -> _fit.FitResult:
     while True:
         kept = tuple(name for col, name, _ in OPTIONAL_TERMS if col in design)
         try:
-            result = _fit.fit(design, fail_fast=_fit.CONSTANT_NAMES if kept else (), **fit_kwargs)
+            result = (_fit.fit(design, fail_fast=_fit.CONSTANT_NAMES, deadline=deadline, **fit_kwargs) if kept
+                      else _fit.fit(design, **fit_kwargs))
             break
         except (ValueError, _fit.ConvergenceError) as exc:
             if not kept:

@@ -63,6 +63,7 @@ Everything is deterministic given ``seed``.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 from typing import Mapping, Sequence
 
@@ -655,7 +656,7 @@ def _check_width(samples: np.ndarray, prep: PreparedDesign, names: Sequence[str]
 
 def _sample(
     post: _LogPosterior, theta0: np.ndarray, seed: int, max_steps: int, n_walkers: int, autocorr_tol: float,
-    prep: PreparedDesign | None = None, fail_fast: Sequence[int] = (),
+    prep: PreparedDesign | None = None, fail_fast: Sequence[int] = (), deadline: float | None = None,
 ):
     """Run emcee from a ball around theta0 until converged; returns (chain, info).
 
@@ -663,7 +664,11 @@ def _sample(
     chain so far already gives one a 95% interval wider than MAX_CI95_DECADES, sampling
     stops with :func:`_check_width`'s ValueError instead of running on to a result that
     would be rejected.
+    deadline : ``time.monotonic()`` by which the chain must have converged: after every
+    chunk, a chain that the steps its tau estimate still asks for (at the pace of the steps
+    so far) would take past it stops with ConvergenceError.
     """
+    started = time.monotonic()
     n_dim = theta0.size
     rng = np.random.default_rng(seed)
     lower = np.append(post.lo, 0.0)
@@ -727,6 +732,19 @@ def _sample(
                 n_steps,
                 acceptance,
             )
+        if deadline is not None:  # the steps still wanted, at the pace of those so far
+            left = deadline - time.monotonic()
+            more = (time.monotonic() - started) / n_steps * max(wanted - n_steps, MIN_CHUNK_STEPS)
+            if more > left:
+                raise ConvergenceError(
+                    f"posterior not converged in the time left for fitting: after {n_steps} steps "
+                    f"(burn-in {burn}) about {wanted} are needed (tau = "
+                    f"{np.array2string(np.asarray(tau), precision=1)} steps), {more:.1f} s more at "
+                    f"this pace, {max(left, 0.0):.1f} s left",
+                    tau,
+                    n_steps,
+                    acceptance,
+                )
         chunk = int(min(max(wanted - n_steps, MIN_CHUNK_STEPS), max_steps - n_steps))
     thin = max(1, int(THIN_TAU * np.min(tau)))
     chain = sampler.get_chain(discard=burn, thin=thin, flat=True)
@@ -771,6 +789,7 @@ def fit(
     required: Sequence[str] = REQUIRED_COUNT_KEYS,
     priors: Mapping | None = None,
     fail_fast: Sequence[str] = (),
+    deadline: float | None = None,
 ) -> FitResult:
     """Fit T_setup, T_step, T_int (and T_sub, T_mem) to batch timings.
 
@@ -789,10 +808,12 @@ def fit(
         is too small a part of every batch to be identified by the batches alone.
     fail_fast : constants (e.g. an optional term) whose 95% interval is checked while
         sampling: one already too wide ends the fit early with the same ValueError.
+    deadline : ``time.monotonic()`` by which the chain must converge; a chain whose
+        remaining steps would run past it ends early with ConvergenceError (None: no limit).
 
     Returns a :class:`FitResult`. Raises ValueError for malformed or ill-posed
     designs (naming the problem) and ConvergenceError when the posterior does
-    not converge within ``max_steps``.
+    not converge within ``max_steps`` (or by ``deadline``).
     """
     prep = prepare_design(design, required)
     for name, spec in (priors or {}).items():
@@ -811,7 +832,7 @@ def fit(
     _check_identified(theta, post, prep)
     try:
         chain, info = _sample(post, theta, seed, int(max_steps), int(n_walkers), float(autocorr_tol), prep,
-                              [p for p, name in enumerate(prep.names) if name in fail_fast])
+                              [p for p, name in enumerate(prep.names) if name in fail_fast], deadline)
     except ConvergenceError as exc:
         exc.args = (exc.args[0] + _condition_hint(prep),)
         raise

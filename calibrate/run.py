@@ -64,6 +64,14 @@ FIT_RESERVE_S = 9.0
 #: run lasted 63.5 s (docs/calibration.md, "A noisy host").
 FIT_RESERVE_MARGIN = 1.2
 POST_FIT_PER_POOLED = 4.0
+#: The fits' chains keep to the budget too (``calibrate.fit.fit``'s deadline): a trial of an
+#: optional term whose chain cannot converge in time ends, and the term is left out with a
+#: warning (a pooled trial that ran to its cap took 8.7 s and the run 63.9 s, 2026-12-06).
+#: The pooled fit's trials end by the run's deadline less the time kept for the fits after
+#: it (POST_FIT_PER_POOLED times the stage before's pooled fit, at least half
+#: FIT_RESERVE_S); each ray set's trials by the deadline less FINISH_MARGIN_S, kept for the
+#: cross-validation (0.5-0.8 s here) and writing the file.
+FINISH_MARGIN_S = 1.5
 #: Cap on the chain of an isolating suite's fit (two or three constants; a steady design
 #: converges in 1,200-1,500 steps): a chain that wants more is an interval the noise has
 #: made too wide, and it is reported as not fitted instead of taking the run's budget.
@@ -267,9 +275,15 @@ def _priors(isolated):
     return priors
 
 
-def _fit_stage(recs, seed, isolated):
+def _fit_clock(deadline):
+    """The run's ``deadline`` (by this module's clock) on the clock the fits read
+    (``calibrate.fit``'s ``time.monotonic``): the same in a run, apart where a test fakes one."""
+    return None if deadline is None else _fit.time.monotonic() + (deadline - time.monotonic())
+
+
+def _fit_stage(recs, seed, isolated, deadline=None):
     design = calfile.design_from_measurements(recs, "in_context")
-    return calfile.fit_in_context(design, seed=seed, priors=_priors(isolated))
+    return calfile.fit_in_context(design, seed=seed, priors=_priors(isolated), deadline=_fit_clock(deadline))
 
 
 def _holdout(result, by_rays, recs):
@@ -516,13 +530,15 @@ def _isolated_fit(recs, seed):
     return out, ("isolated: " + "; ".join(problems)) if problems else None
 
 
-def _finish(result, recs, seed, priors, warnings):
+def _finish(result, recs, seed, priors, warnings, deadline=None):
     """What a run does after its last pooled fit, and ``calibrate fit`` after its re-fit: each
     ray set's fit, the held-back errors ((MARE, pooled MARE, {ray set: MARE})) and the
     cross-validated ones ((median, {ray set: median})).  Ray sets not fitted alone and optional
-    terms the pooled fit left out are said in ``warnings``.  Returns (by_rays, skipped,
-    held-back errors, cross-validated errors)."""
-    by_rays, skipped = calfile.fit_by_rays(recs, seed=seed, priors=priors)
+    terms the pooled fit left out are said in ``warnings``.  ``deadline``: the run's end, which
+    the ray sets' trial terms (:func:`calibrate.calfile.fit_in_context`) must leave FINISH_MARGIN_S
+    before.  Returns (by_rays, skipped, held-back errors, cross-validated errors)."""
+    end = None if deadline is None else deadline - FINISH_MARGIN_S
+    by_rays, skipped = calfile.fit_by_rays(recs, seed=seed, priors=priors, deadline=_fit_clock(end))
     for name, why in skipped.items():
         warnings.append(f"ray set {name}: not fitted alone, its predictions use the pooled constants ({why})")
     for _, name, _ in calfile.OPTIONAL_TERMS:
@@ -624,6 +640,7 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
         last_fit = None  # (stage, records, isolated, warning, result, cache) of the last stage that fitted
         stage = 0
         reserve = FIT_RESERVE_S  # kept for the fits after the last stage; re-estimated by each stage
+        post_reserve = FIT_RESERVE_S / 2  # of it, what each ray set's fit and the cross-validation take
         while True:
             stage += 1
             status(f"measuring stage {stage}: {len(configs)} configurations to {rounds} values each")
@@ -646,7 +663,7 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
                                 f"cache ({l2_source}) to the last-level one")
             pooled_start = time.monotonic()
             try:
-                result = _fit_stage(recs, seed, isolated)
+                result = _fit_stage(recs, seed, isolated, deadline - post_reserve)
             except (ValueError, _fit.ConvergenceError) as exc:
                 if time.monotonic() < deadline - reserve:
                     rounds += STAGE_ROUNDS
@@ -665,6 +682,7 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
             last_fit = (stage, recs, isolated, iso_warning, result, (cache, cache_scores, cache_source))
             fit_end = time.monotonic()
             reserve = fit_reserve(fit_end - fit_start, fit_end - pooled_start)
+            post_reserve = min(reserve, max(FIT_RESERVE_S / 2, POST_FIT_PER_POOLED * (fit_end - pooled_start)))
             width = _rel_width(result)
             enough = target_rel_width is None or width <= target_rel_width
             if on_stage is not None and on_stage(Stage(
@@ -680,7 +698,7 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
 
         status("fitting each ray set alone")
         by_rays, skipped, (mare, mare_pooled, mare_by_rays), (cv, cv_by_rays) = _finish(
-            result, recs, seed, _priors(isolated), warnings)
+            result, recs, seed, _priors(isolated), warnings, deadline)
         if iso_warning:
             warnings.append(iso_warning)
         cut = 0

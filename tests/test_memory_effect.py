@@ -483,3 +483,25 @@ def test_a_fit_with_an_optional_term_stops_as_soon_as_a_required_constant_is_not
     with pytest.raises(ValueError, match="T_step is not identified"):
         calfile.fit_in_context(design, seed=0, priors=PRIORS)
     assert sum(steps) == F.FIRST_CHUNK_STEPS
+
+
+def test_a_trial_term_whose_chain_cannot_converge_by_the_deadline_is_left_out(monkeypatch):
+    """A run's fits keep to its budget: with no time left, the trial of T_mem ends after its first
+    chunk and the term is left out, saying why; the fit without trial terms has no deadline and
+    still recovers the other constants."""
+    import time
+
+    recs = _records(8, truth=dict(TRUTH, t_mem_ns=12.0))
+    design = calfile.design_from_measurements(recs, "in_context")
+    steps = _chain_steps(monkeypatch)
+    with pytest.raises(F.ConvergenceError, match="time left for fitting"):
+        F.fit(design, seed=0, priors=PRIORS, deadline=time.monotonic())
+    assert steps == [F.FIRST_CHUNK_STEPS]
+    steps.clear()
+    result = calfile.fit_in_context(design, seed=0, priors=PRIORS, deadline=time.monotonic())
+    assert "t_mem_ns" not in result.names
+    assert "time left for fitting" in result.diagnostics["t_mem_skipped"]
+    assert steps[0] == F.FIRST_CHUNK_STEPS and sum(steps) > F.FIRST_CHUNK_STEPS  # the trial, then a full fit
+    # and with time enough the same design keeps T_mem and recovers it
+    kept = calfile.fit_in_context(design, seed=0, priors=PRIORS, deadline=time.monotonic() + 3600)
+    assert kept.constants["t_mem_ns"]["median"] == pytest.approx(12.0, rel=0.15)

@@ -383,11 +383,11 @@ def test_a_failed_last_stage_keeps_the_last_fit_that_worked(small_suite, tmp_pat
     real_fit_stage = run._fit_stage
     calls = {"n": 0}
 
-    def fit_stage(recs, seed, isolated):
+    def fit_stage(recs, seed, isolated, deadline=None):
         calls["n"] += 1
         if calls["n"] > 1:
             raise ValueError("planted failure")
-        return real_fit_stage(recs, seed, isolated)
+        return real_fit_stage(recs, seed, isolated, deadline)
 
     monkeypatch.setattr(run, "time", FakeTime)
     monkeypatch.setattr(run, "measure", fake_measure)
@@ -462,9 +462,9 @@ def test_slow_fits_end_measuring_earlier(small_suite, tmp_path, monkeypatch):
 
     real_fit_stage = run._fit_stage
 
-    def slow_fit_stage(recs, seed, isolated):
+    def slow_fit_stage(recs, seed, isolated, deadline=None):
         clock["t"] += 10.0  # a pooled fit that takes 10 s
-        return real_fit_stage(recs, seed, isolated)
+        return real_fit_stage(recs, seed, isolated, deadline)
 
     monkeypatch.setattr(run, "time", FakeTime)
     monkeypatch.setattr(run, "measure", fake_measure)
