@@ -64,7 +64,7 @@ FIT_RESERVE_S = 9.0
 #: run lasted 63.5 s (docs/calibration.md, "A noisy host").  With the denser in-context suite
 #: (154 configurations, 2026-12-06 afternoon) the ray sets' fits took 5.3 s of the 7.1 s that
 #: 4 times kept, and in one run of six the isotropic trials wanted 0.7 s more than was left and
-#: lost T_visit, T_mem and T_hit (its r 0.126 against 0.32-0.33): 5 times keeps 2 s more.
+#: lost T_visit, T_mem and T_hit (its r 0.126 against 0.18-0.33 in the others): 5 times keeps 2 s more.
 FIT_RESERVE_MARGIN = 1.2
 POST_FIT_PER_POOLED = 5.0
 #: The fits' chains keep to the budget too (``calibrate.fit.fit``'s deadline): a trial of an

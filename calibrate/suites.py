@@ -66,11 +66,15 @@ CONTEXT_SCENES = ("sphere", "cylinder1996", "scattered-compact", "scattered-skin
 #: the configurations, not by the repeats, and shrinks with the number of configurations; on
 #: this project's 2-core host, 154 in-context configurations of about 5 values each (these
 #: and the skinny extras below) took r's 95% half-width from 13-17% to 5-9% (camera rays)
-#: and from 28-36% to 19-24% (isotropic) against 92 of 9-10 values each (1/8, 1/2, 1, 2, 4,
-#: 8; 16, 32), in the same 51-60 s (docs/calibration.md, "More resolutions, fewer repeats").
+#: and from 28-36% to 19-24% (isotropic) against 92 of 9-10 values each (the coarse
+#: resolutions below), in the same 51-60 s (docs/calibration.md, "More resolutions, fewer repeats").
 CONTEXT_CELLS_PER_TRIANGLE = (1 / 8, 1 / 4, 1 / 2, 0.75, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0)
 #: Extra, finer multiples for scenes of long skinny triangles, whose optimum is O(N^1.5) cells.
 CONTEXT_SKINNY_EXTRA = (12.0, 16.0, 24.0, 32.0)
+#: The coarser resolutions of before (an octave apart), for the quick suites of the tests and of
+#: ``calibrate tradeoff --quick``, where fewer configurations keep them short.
+COARSE_CONTEXT_CELLS_PER_TRIANGLE = (1 / 8, 1 / 2, 1.0, 2.0, 4.0, 8.0)
+COARSE_CONTEXT_SKINNY_EXTRA = (16.0, 32.0)
 #: Nesting depths of the in-context nested grids.
 CONTEXT_LEVELS = (2, 3)
 #: Ray sets of the in-context suite.

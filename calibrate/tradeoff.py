@@ -73,14 +73,15 @@ PRECISION_NOTE = ("the kernels are double precision only (kernels/gridcal.h): sc
                   "must work, and products of two coordinates (1e40) do not fit single precision, so there is "
                   "no single-precision variant to compare")
 
-# --quick: three small scenes in the in-context suite at the coarser resolutions of before
-# (2026-12-06), the isolating suites' steady state with a
+# --quick: three small scenes in the in-context suite at the coarse resolutions
+# (suites.COARSE_CONTEXT_*), the isolating suites' steady state with a
 # short walk and list each (29 configurations, not 42), short values, a tiny budget, one small
 # scene, few rays.
 QUICK_SCENES = ("cylinder196",)
 QUICK_BUDGET_S = 20.0
 QUICK_SUITES = dict(CONTEXT_SCENES=("cylinder196", "scattered-skinny", "scattered-compact"),
-                    CONTEXT_CELLS_PER_TRIANGLE=(1 / 8, 1 / 2, 1.0, 2.0, 4.0, 8.0), CONTEXT_SKINNY_EXTRA=(16.0, 32.0),
+                    CONTEXT_CELLS_PER_TRIANGLE=suites.COARSE_CONTEXT_CELLS_PER_TRIANGLE,
+                    CONTEXT_SKINNY_EXTRA=suites.COARSE_CONTEXT_SKINNY_EXTRA,
                     EMPTY_GRID_SIDES=(1, 12, 16, 20, 24, 28, 32),
                     CELL_TRIANGLE_COUNTS=(1, 32, 64, 96, 128, 192, 256))
 QUICK_RUN = dict(FIRST_ROUNDS=5, STAGE_ROUNDS=3, FIT_RESERVE_S=1.0, FIT_RESERVE_MARGIN=0.0, POST_FIT_PER_POOLED=0.0)

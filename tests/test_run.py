@@ -27,8 +27,8 @@ def small_suite(monkeypatch):
     monkeypatch.setattr(suites, "CELL_TRIANGLE_COUNTS", (1, 32, 64, 128))
     monkeypatch.setattr(suites, "SUBGRID_SIDES", (2, 4, 8))
     monkeypatch.setattr(suites, "CONTEXT_SCENES", ("cylinder196", "scattered-skinny"))
-    monkeypatch.setattr(suites, "CONTEXT_CELLS_PER_TRIANGLE", (1 / 8, 1 / 2, 1.0, 2.0, 4.0, 8.0))
-    monkeypatch.setattr(suites, "CONTEXT_SKINNY_EXTRA", (16.0, 32.0))
+    monkeypatch.setattr(suites, "CONTEXT_CELLS_PER_TRIANGLE", suites.COARSE_CONTEXT_CELLS_PER_TRIANGLE)
+    monkeypatch.setattr(suites, "CONTEXT_SKINNY_EXTRA", suites.COARSE_CONTEXT_SKINNY_EXTRA)
     monkeypatch.setattr(run, "MIN_VALUE_NS", 2_000_000)
     monkeypatch.setattr(run, "FIRST_ROUNDS", 4)
 
