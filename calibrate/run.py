@@ -41,7 +41,10 @@ FIRST_ROUNDS = 5
 STAGE_ROUNDS = 4
 #: Minimum duration of one timed value, ns (pyperf uses 100 ms; batches here are uniform).
 MIN_VALUE_NS = 10_000_000
-#: Warm-up values discarded per configuration and stage.
+#: Warm-up values discarded per configuration, in a run's first stage only: a later stage's
+#: values follow the first's in the same process, and each value is primed
+#: (PRIME_EACH_VALUE), so a second warm-up bought nothing but time (one value per
+#: configuration, 2-3 s of a 60 s run).
 WARMUPS = 1
 #: One untimed call of a configuration before each of its values (protocol.measure's prime):
 #: interleaving leaves the previous configuration's data in the caches, and a value's first loop
@@ -648,7 +651,8 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
             stage += 1
             status(f"measuring stage {stage}: {len(configs)} configurations to {rounds} values each")
             try:
-                measure(runs, rng=rng, rounds=rounds, warmups=WARMUPS, min_value_ns=MIN_VALUE_NS,
+                measure(runs, rng=rng, rounds=rounds, warmups=WARMUPS if stage == 1 else 0,
+                        min_value_ns=MIN_VALUE_NS,
                         progress=progress, deadline=deadline - reserve, into=timings,
                         prime=PRIME_EACH_VALUE)
             except MeasurementInterrupted:
