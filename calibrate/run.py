@@ -60,22 +60,24 @@ FIT_RESERVE_S = 9.0
 #: The time kept after the last stage is estimated from the stage before it, so that a host
 #: whose fits are slow (a noisy one: longer chains) still ends within the budget: the next
 #: stage's fits take up to FIT_RESERVE_MARGIN times the last stage's (more values, the same
-#: chains), and fitting each ray set alone and cross-validating take up to
-#: POST_FIT_PER_POOLED times the last pooled fit (two fits of half the data each, then
-#: CV_FOLDS maxima per set).  On an AMD EPYC host, 2026-12-03: post-fit 2.7-4.2 times the
-#: pooled fit; an isolating fit that ran to its cap took 9.4 s of a 9 s reserve, and the
-#: run lasted 63.5 s (docs/calibration.md, "A noisy host").  With the denser in-context suite
-#: (154 configurations, 2026-12-06 afternoon) the ray sets' fits took 5.3 s of the 7.1 s that
-#: 4 times kept, and in one run of six the isotropic trials wanted 0.7 s more than was left and
-#: lost T_visit, T_mem and T_hit (its r 0.126 against 0.18-0.33 in the others): 5 times keeps 2 s more.
+#: chains), and fitting each ray set alone and cross-validating take
+#: max(POST_FIT_MIN_S, POST_FIT_PER_POOLED times the last pooled fit) (two fits of half the
+#: data each, with their own trials of the optional terms, then CV_FOLDS maxima per set).
+#: Their time hardly follows the pooled fit's, whose trials end early or late as its own
+#: data decide: on this project's 2-core EPYC host, 2026-12-06, with 154 in-context
+#: configurations, they took 5.3-6.8 s in five runs after pooled fits of 1.8-3.4 s (in one
+#: more, 4 times a 1.8 s pooled fit left the isotropic trials 0.7 s short, and they lost
+#: T_visit, T_mem and T_hit); 5 times the pooled fit kept 14-26 s, and in two runs of five
+#: the second stage did not start (the run ended at 42-46 s of its 60 s).  The floor covers
+#: this host; the multiple follows a slower one.
 FIT_RESERVE_MARGIN = 1.2
-POST_FIT_PER_POOLED = 5.0
+POST_FIT_MIN_S = 8.0
+POST_FIT_PER_POOLED = 2.5
 #: The fits' chains keep to the budget too (``calibrate.fit.fit``'s deadline): a trial of an
 #: optional term whose chain cannot converge in time ends, and the term is left out with a
 #: warning (a pooled trial that ran to its cap took 8.7 s and the run 63.9 s, 2026-12-06).
 #: The pooled fit's trials end by the run's deadline less the time kept for the fits after
-#: it (POST_FIT_PER_POOLED times the stage before's pooled fit, at least half
-#: FIT_RESERVE_S); each ray set's trials by the deadline less FINISH_MARGIN_S, kept for the
+#: it (:func:`post_fit_reserve` of the stage before's pooled fit); each ray set's trials by the deadline less FINISH_MARGIN_S, kept for the
 #: cross-validation (0.5-0.8 s here) and writing the file.
 FINISH_MARGIN_S = 1.5
 #: Cap on the chain of an isolating suite's fit (two or three constants; a steady design
@@ -369,12 +371,18 @@ def spread_summary(spreads, n_configs: int, detrended=None) -> str:
             f"{after}); the host may be busy or noisy (each configuration's warnings are in the file's measurements)")
 
 
+def post_fit_reserve(pooled_fit_s: float) -> float:
+    """Seconds to keep for each ray set's fit and the cross-validation after the last pooled
+    fit, from the stage before's pooled fit (``pooled_fit_s``)."""
+    return max(POST_FIT_MIN_S, POST_FIT_PER_POOLED * pooled_fit_s)
+
+
 def fit_reserve(stage_fit_s: float, pooled_fit_s: float) -> float:
     """Seconds to keep after the last stage's measuring, from the last stage's fitting time
     (``stage_fit_s``: the isolating suites and the pooled fit) and its pooled fit's alone:
-    the next stage's fits, then each ray set's and the cross-validation; never less than
-    FIT_RESERVE_S."""
-    return max(FIT_RESERVE_S, FIT_RESERVE_MARGIN * stage_fit_s + POST_FIT_PER_POOLED * pooled_fit_s)
+    the next stage's fits, then each ray set's and the cross-validation
+    (:func:`post_fit_reserve`); never less than FIT_RESERVE_S."""
+    return max(FIT_RESERVE_S, FIT_RESERVE_MARGIN * stage_fit_s + post_fit_reserve(pooled_fit_s))
 
 
 def _suite_design(recs, suite, per_ray, threshold, aimed_column=False):
@@ -689,7 +697,7 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
             last_fit = (stage, recs, isolated, iso_warning, result, (cache, cache_scores, cache_source))
             fit_end = time.monotonic()
             reserve = fit_reserve(fit_end - fit_start, fit_end - pooled_start)
-            post_reserve = min(reserve, max(FIT_RESERVE_S / 2, POST_FIT_PER_POOLED * (fit_end - pooled_start)))
+            post_reserve = min(reserve, post_fit_reserve(fit_end - pooled_start))
             width = _rel_width(result)
             enough = target_rel_width is None or width <= target_rel_width
             if on_stage is not None and on_stage(Stage(
