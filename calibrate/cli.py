@@ -219,8 +219,11 @@ def cmd_run(args) -> int:
         return 0
     console.print(_constants_table(cal, f"calibration of this host ({cal['meta']['intersector']} intersector), "
                                         "all ray sets"))
-    console.print(_ratio_line(cal["constants"]["ratio"]))
     table = _by_rays_table(cal, "each ray set fitted alone (what predict --rays uses)")
+    # With ray sets fitted alone, the pooled fit is not the one predict, export and compare
+    # plan with (each takes a ray set's, isotropic by default): its r is labelled so.
+    console.print(_ratio_line(cal["constants"]["ratio"], "r = T_int/T_step" if table is None else
+                              "all ray sets pooled (not what predict, export and compare use): r"))
     if table is not None:
         console.print(table)
         for name, entry in cal["by_rays"].items():

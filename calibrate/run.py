@@ -706,8 +706,8 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
                 enough = True
             if enough or time.monotonic() >= deadline - reserve:
                 if not enough:
-                    warnings.append(f"budget spent: r's 95% interval is {100 * width:.1f}% of its median wide, "
-                                    f"target {100 * target_rel_width:.1f}%")
+                    warnings.append(f"budget spent: the pooled fit's r has a 95% interval {100 * width:.1f}% of its "
+                                    f"median wide, target {100 * target_rel_width:.1f}%")
                 break
             rounds += STAGE_ROUNDS
 
