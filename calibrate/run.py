@@ -65,10 +65,11 @@ FIT_RESERVE_S = 9.0
 #: data each, with their own trials of the optional terms, then CV_FOLDS maxima per set).
 #: Their time hardly follows the pooled fit's, whose trials end early or late as its own
 #: data decide: on this project's 2-core EPYC host, 2026-12-06, with 154 in-context
-#: configurations, they took 5.3-6.8 s in five runs after pooled fits of 1.8-3.4 s (in one
-#: more, 4 times a 1.8 s pooled fit left the isotropic trials 0.7 s short, and they lost
-#: T_visit, T_mem and T_hit); 5 times the pooled fit kept 14-26 s, and in two runs of five
-#: the second stage did not start (the run ended at 42-46 s of its 60 s).  The floor covers
+#: configurations, they took 5.1-6.8 s in six runs after last pooled fits of 2.1-3.4 s (in
+#: an earlier one, 4 times a 1.8 s pooled fit left the isotropic trials 0.7 s short, and they
+#: lost T_visit, T_mem and T_hit); with 5 times the pooled fit the first stage's reserve was
+#: 14-21 s, and in two runs of five the second stage did not start (the run ended at 42-46 s
+#: of its 60 s; docs/calibration.md, "The budget spent on measuring").  The floor covers
 #: this host; the multiple follows a slower one.
 FIT_RESERVE_MARGIN = 1.2
 POST_FIT_MIN_S = 8.0
@@ -77,8 +78,9 @@ POST_FIT_PER_POOLED = 2.5
 #: optional term whose chain cannot converge in time ends, and the term is left out with a
 #: warning (a pooled trial that ran to its cap took 8.7 s and the run 63.9 s, 2026-12-06).
 #: The pooled fit's trials end by the run's deadline less the time kept for the fits after
-#: it (:func:`post_fit_reserve` of the stage before's pooled fit); each ray set's trials by the deadline less FINISH_MARGIN_S, kept for the
-#: cross-validation (0.5-0.8 s here) and writing the file.
+#: it (:func:`post_fit_reserve` of the stage before's pooled fit); each ray set's trials by
+#: the deadline less FINISH_MARGIN_S, kept for the cross-validation (0.5-0.8 s here) and
+#: writing the file.
 FINISH_MARGIN_S = 1.5
 #: Cap on the chain of an isolating suite's fit (two or three constants; a steady design
 #: converges in 1,200-1,500 steps): a chain that wants more is an interval the noise has
