@@ -432,7 +432,7 @@ def test_an_empty_suite_too_noisy_for_its_steady_walks_falls_back_to_every_walk(
 
 
 def test_fit_reserve_grows_with_the_last_stages_fitting_time():
-    assert run.fit_reserve(0.5, 0.2) == run.FIT_RESERVE_S
+    assert run.fit_reserve(0.0, 0.0) >= run.FIT_RESERVE_S
     # the ray sets' fits keep their floor after a quick pooled fit, and follow a slow one
     assert run.fit_reserve(10.0, 2.0) == pytest.approx(run.FIT_RESERVE_MARGIN * 10.0 + run.POST_FIT_MIN_S)
     assert run.fit_reserve(10.0, 8.0) == pytest.approx(run.FIT_RESERVE_MARGIN * 10.0 + run.POST_FIT_PER_POOLED * 8.0)
