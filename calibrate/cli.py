@@ -380,7 +380,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--budget", type=positive_number("the budget in seconds"), default=60.0, metavar="SECONDS",
                     help="wall-clock budget (default 60)")
     sp.add_argument("--target-rel-width", type=positive_number("the target relative width"), default=0.06, metavar="W",
-                    help="stop once r's 95%% interval, relative to its median, is narrower than W (default 0.06)")
+                    help="stop once the pooled fit's r (both ray sets' batches fitted together) has a 95%% "
+                         "interval narrower than W times its median (default 0.06)")
     sp.add_argument("--out", default=DEFAULT_CALIBRATION, metavar="FILE", help="calibration file to write")
     sp.add_argument("--intersector", default="watertight", choices=["watertight", "moller-trumbore"])
     sp.add_argument("--seed", type=seed_number, default=0)
