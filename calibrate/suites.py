@@ -229,9 +229,11 @@ def context_configs(intersector: str, seed: int = 0, scenes=None, copies: int | 
         for levels in CONTEXT_LEVELS:
             grids.append((f"L{levels}", lambda levels=levels, scene=scene: Grid.nested(
                 scene, levels=levels, intersector=intersector)))
-        # Each grid and its copies are built once and timed under every ray set (the ray sets
-        # are fitted apart, so sharing them ties no two fitted configurations together); the
-        # builds were two thirds of this suite's set-up time when each ray set built its own.
+        # Each grid and its copies are built once and timed under every ray set: in each ray
+        # set's own fit no two configurations share a grid (in the pooled fit, where a copy lies
+        # in memory now moves both ray sets' values of it alike, a few per cent averaged over
+        # its copies); the builds were two thirds of this suite's set-up time when each ray set
+        # built its own.
         built = []
         for label, build in grids:
             grid = build()
