@@ -11,9 +11,14 @@
  * overflows the 32-bit cell offsets, a reference count that overflows them, or
  * a grid that would pass the memory limit is refused with a message.
  *
+ * The triangles are read from the mesh through its faces, in the Morton order
+ * of their centroids (scan_faces), and a reference is a face index: the build
+ * keeps no copy of the triangles until it lays each reference's triangle in the
+ * packs that traversal reads.
+ *
  * With params.threads > 1 the passes over many triangles or references (the
- * face scan, the triangle copy, the pair collection and the per-reference
- * copies) run in that many contiguous parts at once, and the parts are joined in
+ * face scan, the pair collection and the per-reference copies) run in that many
+ * contiguous parts at once, and the parts are joined in
  * order, so the grid is the same, byte for byte, as one thread builds.  Built
  * with GC_NO_THREADS, or where a thread cannot start, the parts run one after
  * the other on the calling thread.
@@ -51,6 +56,7 @@ typedef struct {
     int threads;           /* parts a pass may be split into (>= 1) */
     int64_t rows2_base;    /* subgrid_resolutions2: first row of the depth-1 subgrid being built */
     int64_t rows2_next;    /* ... and of the next one */
+    const gc_mesh *mesh;   /* the triangles: each reference is a face index into it */
 #ifndef GC_NO_THREADS
     pthread_mutex_t lock;  /* guards scratch and err while parts run */
 #endif
@@ -150,7 +156,7 @@ typedef struct {
 static uint64_t grid_bytes(const builder *b)
 {
     const gc_grid *g = b->g;
-    return (uint64_t)g->n_tris * (sizeof(gc_tri) + sizeof(int32_t)) + (uint64_t)g->n_refs * sizeof(gc_tri) +
+    return (uint64_t)g->n_refs * sizeof(gc_tri) +
            (uint64_t)b->cap_nodes * sizeof(gc_node) +
            (uint64_t)b->cap_cells * sizeof(gc_cell) + (uint64_t)b->cap_refs * sizeof(uint32_t);
 }
@@ -325,6 +331,25 @@ done:
     return st;
 }
 
+/* Faces are read in an order of their own (the Morton order of their centroids,
+ * or a cell's references), so their corners are gathered from all over the mesh:
+ * start loading the face PREFETCH_AHEAD items ahead, and the corners of the one
+ * half as far ahead, whose face was asked for earlier. */
+#define PREFETCH_AHEAD 16
+GC_INLINE void prefetch_face(const double *vert, const int64_t *faces, const uint32_t *order, int64_t k,
+                             int64_t end)
+{
+    if (k + PREFETCH_AHEAD < end) {
+        GC_PREFETCH(faces + 3 * (int64_t)order[k + PREFETCH_AHEAD]);
+    }
+    if (k + PREFETCH_AHEAD / 2 < end) {
+        const int64_t *fv = faces + 3 * (int64_t)order[k + PREFETCH_AHEAD / 2];
+        GC_PREFETCH(vert + 3 * fv[0]);
+        GC_PREFETCH(vert + 3 * fv[1]);
+        GC_PREFETCH(vert + 3 * fv[2]);
+    }
+}
+
 /* One part of collect_pairs: the pairs of a contiguous run of the node's triangles. */
 typedef struct {
     builder *b;
@@ -350,9 +375,17 @@ static void collect_part(void *arg)
     int64_t n = 0, cap = j->cap;
     gc_status st = GC_OK;
     const int64_t nx = nd->n[0], nxy = (int64_t)nd->n[0] * nd->n[1];
+    const double *vert = b->mesh->vertices;
+    const int64_t *faces = b->mesh->faces;
     for (int64_t k = 0; k < j->n_prims; ++k) {
         const uint32_t prim = j->prims[k];
-        const gc_tri *t = &b->g->tris[prim];
+        prefetch_face(vert, faces, j->prims, k, j->n_prims);
+        const int64_t *fv = faces + 3 * (int64_t)prim;
+        gc_tri tri;
+        memcpy(tri.v0, vert + 3 * fv[0], sizeof tri.v0);
+        memcpy(tri.v1, vert + 3 * fv[1], sizeof tri.v1);
+        memcpy(tri.v2, vert + 3 * fv[2], sizeof tri.v2);
+        const gc_tri *t = &tri;
         int32_t r0[3], r1[3];
         double bmin[3], bmax[3];
         int spread = 0; /* axes along which the bounds span several cells or leave the node */
@@ -948,32 +981,10 @@ static gc_status check_params(const gc_build_params *p, char *err)
     return GC_OK;
 }
 
-/* The stored triangles: copies of the faces in Morton order, and their face ids. */
-typedef struct {
-    const gc_mesh *mesh;
-    gc_grid *g;
-    uint32_t *prims; /* in: the faces in order; out: the stored index of each */
-    int64_t k0, k1;
-} copy_job;
-
-static void copy_part(void *arg)
-{
-    copy_job *j = arg;
-    const gc_mesh *mesh = j->mesh;
-    gc_grid *g = j->g;
-    for (int64_t k = j->k0; k < j->k1; ++k) {
-        const int64_t *fv = mesh->faces + 3 * (int64_t)j->prims[k];
-        memcpy(g->tris[k].v0, mesh->vertices + 3 * fv[0], 3 * sizeof(double));
-        memcpy(g->tris[k].v1, mesh->vertices + 3 * fv[1], 3 * sizeof(double));
-        memcpy(g->tris[k].v2, mesh->vertices + 3 * fv[2], 3 * sizeof(double));
-        g->tri_id[k] = (int32_t)j->prims[k];
-        j->prims[k] = (uint32_t)k; /* the top level indexes the stored (sorted) triangles */
-    }
-}
-
 /* Each reference's triangle and face index laid beside it: references [k0, k1), whole packs. */
 typedef struct {
     gc_grid *g;
+    const gc_mesh *mesh;
     int64_t k0, k1;
 } fill_job;
 
@@ -981,16 +992,21 @@ static void fill_part(void *arg)
 {
     fill_job *j = arg;
     gc_grid *g = j->g;
+    const double *vert = j->mesh->vertices;
+    const int64_t *faces = j->mesh->faces;
     for (int64_t k = j->k0; k < j->k1; ++k) {
-        const gc_tri *t = &g->tris[g->refs[k]];
+        const uint32_t face = g->refs[k];
+        prefetch_face(vert, faces, g->refs, k, j->k1);
+        const int64_t *fv = faces + 3 * (int64_t)face;
+        const double *v0 = vert + 3 * fv[0], *v1 = vert + 3 * fv[1], *v2 = vert + 3 * fv[2];
         gc_pack *pk = &g->ref_tris[k / GC_LANES];
         const int lane = (int)(k % GC_LANES);
         for (int i = 0; i < 3; ++i) {
-            pk->c[i][lane] = t->v0[i];
-            pk->c[3 + i][lane] = t->v1[i];
-            pk->c[6 + i][lane] = t->v2[i];
+            pk->c[i][lane] = v0[i];
+            pk->c[3 + i][lane] = v1[i];
+            pk->c[6 + i][lane] = v2[i];
         }
-        pk->id[lane] = g->tri_id[g->refs[k]];
+        pk->id[lane] = (int32_t)face;
     }
 }
 
@@ -1041,6 +1057,7 @@ static gc_status build_grid(builder *b, const gc_mesh *mesh, gc_grid **out)
         return GC_ERR_NO_MEMORY;
     }
     b->g = g;
+    b->mesh = mesh;
     g->intersector = p->intersector;
     g->mailbox = p->mailbox != 0;
     g->n_tris = mesh->n_faces;
@@ -1093,28 +1110,6 @@ static gc_status build_grid(builder *b, const gc_mesh *mesh, gc_grid **out)
         st = check_resolution(b, p->resolution, 0);
     }
     if (st == GC_OK) {
-        st = check_memory(b, 0, "the triangles"); /* grid_bytes counts them already */
-    }
-    if (st == GC_OK) {
-        size_t n_alloc = (size_t)(g->n_tris > 0 ? g->n_tris : 1);
-        g->tris = malloc(n_alloc * sizeof(gc_tri));
-        g->tri_id = malloc(n_alloc * sizeof(int32_t));
-        if (!g->tris || !g->tri_id) {
-            gc_set_error(err, "out of memory copying %lld triangles", (long long)g->n_tris);
-            st = GC_ERR_NO_MEMORY;
-        }
-    }
-    if (st == GC_OK) {
-        copy_job jobs[GC_MAX_THREADS];
-        const int parts = parts_for(b, g->n_tris);
-        for (int k = 0; k < parts; ++k) {
-            jobs[k].mesh = mesh;
-            jobs[k].g = g;
-            jobs[k].prims = prims;
-            jobs[k].k0 = part_start(g->n_tris, k, parts, 1);
-            jobs[k].k1 = part_start(g->n_tris, k + 1, parts, 1);
-        }
-        run_parts(copy_part, jobs, sizeof *jobs, parts);
         uint32_t top;
         st = build_node(b, prims, g->n_tris, lo, hi, p->resolution, 0, &top);
     }
@@ -1150,16 +1145,13 @@ static gc_status build_grid(builder *b, const gc_mesh *mesh, gc_grid **out)
         const int parts = parts_for(b, g->n_refs);
         for (int k = 0; k < parts; ++k) {
             jobs[k].g = g;
+            jobs[k].mesh = mesh;
             jobs[k].k0 = part_start(g->n_refs, k, parts, GC_LANES);
             jobs[k].k1 = part_start(g->n_refs, k + 1, parts, GC_LANES);
         }
         run_parts(fill_part, jobs, sizeof *jobs, parts);
     }
-    /* the packs hold all traversal reads: the build's arrays go */
-    free(g->tris);
-    g->tris = NULL;
-    free(g->tri_id);
-    g->tri_id = NULL;
+    /* the packs hold all traversal reads: the build's references go */
     free(g->refs);
     g->refs = NULL;
     g->cells = gc_big_move(g->cells, (size_t)g->n_cells * sizeof(gc_cell), &g->cells_mapped);

@@ -1,13 +1,11 @@
 /* gc_internal.h - data layout shared by the kernels' translation units.
  *
- * Not part of the public interface.  A grid is four flat arrays:
- *   tris  : the mesh's triangles, vertex positions copied per triangle (72 bytes each),
- *           sorted along a Morton curve so that the triangles of one cell share cache
- *           lines (tri_id maps back to the mesh's face index);
+ * Not part of the public interface.  A grid is flat arrays:
  *   nodes : one per (sub)grid, node 0 is the top level;
  *   cells : every node's cells, node k owning [first_cell, first_cell + nx*ny*nz);
- *   refs  : triangle indices (build only; freed after); a leaf cell owns references
- *           [begin, begin + count);
+ *   refs  : each reference's face index into the mesh (build only; freed after); a leaf
+ *           cell owns references [begin, begin + count), in the Morton order of their
+ *           triangles' centroids;
  *   ref_tris : the vertices of each reference's triangle and its face index, in packs
  *           of GC_LANES references (gc_pack) so that one coordinate of neighbouring
  *           references is one vector load.
@@ -84,19 +82,17 @@ _Static_assert(sizeof(gc_cell) == 8, "gc_cell is two 32-bit fields");
 _Static_assert(sizeof(gc_node) == 120, "gc_node layout");
 
 struct gc_grid {
-    gc_tri *tris;       /* in Morton order of their centroids (build only; freed after) */
     gc_pack *ref_tris;  /* a copy of each reference's triangle, parallel to refs, in packs
                          * (gc_pack): a cell's triangles stream from one contiguous block,
                          * so the cost of a test does not depend on where the triangle
                          * lies in memory */
-    int32_t *tri_id;    /* the mesh's face index of each stored triangle (build only; freed after) */
     int64_t n_tris;
     gc_node *nodes;
     int64_t n_nodes;
     gc_cell *cells;
     int64_t n_cells;
     size_t ref_tris_mapped, cells_mapped; /* bytes mapped by gc_big_alloc, 0 if malloc'd */
-    uint32_t *refs;     /* the stored triangle of each reference (build only; freed after) */
+    uint32_t *refs;     /* the mesh face of each reference (build only; freed after) */
     int64_t n_refs;
     gc_intersector intersector;
     int mailbox;

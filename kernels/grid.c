@@ -151,9 +151,7 @@ void gc_grid_free(gc_grid *grid)
     if (!grid) {
         return;
     }
-    free(grid->tris);
     gc_big_free(grid->ref_tris, grid->ref_tris_mapped);
-    free(grid->tri_id);
     free(grid->nodes);
     gc_big_free(grid->cells, grid->cells_mapped);
     free(grid->refs);
