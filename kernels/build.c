@@ -17,9 +17,10 @@
  * packs that traversal reads.
  *
  * With params.threads > 1 the passes over many triangles or references (the
- * face scan, the pair collection and the per-reference copies) run in that many
- * contiguous parts at once, and the parts are joined in
- * order, so the grid is the same, byte for byte, as one thread builds.  Built
+ * face scan and its radix sort, the pair collection, the counting sort by cell
+ * and the per-reference copies) run in that many contiguous parts at once, and
+ * the parts are joined in order, so the grid is the same, byte for byte, as one
+ * thread builds.  Built
  * with GC_NO_THREADS, or where a thread cannot start, the parts run one after
  * the other on the calling thread.
  */
@@ -540,6 +541,49 @@ static gc_status collect_pairs(builder *b, const gc_node *nd, const uint32_t *pr
     return GC_OK;
 }
 
+/* The counting sort of a node's pairs by cell, in parts over contiguous ranges of
+ * cells [c0, c1): each part reads every pair and takes those of its cells, so the
+ * parts write disjoint counters and slots, and each cell's references keep the
+ * order of the pairs (the order of prims), as one thread sorts them. */
+typedef struct {
+    const collect_job *jobs; /* the pairs, in jobs[0 .. parts - 1] */
+    int parts;
+    uint32_t *off;           /* ncell + 1 counters */
+    uint32_t *sorted;
+    uint32_t c0, c1;
+} sort_job;
+
+static void sort_count_part(void *arg)
+{
+    sort_job *s = arg;
+    const uint32_t c0 = s->c0, span = s->c1 - s->c0;
+    uint32_t *off = s->off;
+    memset(off + c0 + 1, 0, (size_t)span * sizeof *off);
+    for (int k = 0; k < s->parts; ++k) {
+        const pair *pairs = s->jobs[k].pairs;
+        for (int64_t q = 0; q < s->jobs[k].n; ++q) {
+            if (pairs[q].cell - c0 < span) {
+                off[pairs[q].cell + 1]++;
+            }
+        }
+    }
+}
+
+static void sort_scatter_part(void *arg)
+{
+    sort_job *s = arg;
+    const uint32_t c0 = s->c0, span = s->c1 - s->c0;
+    uint32_t *off = s->off, *sorted = s->sorted;
+    for (int k = 0; k < s->parts; ++k) { /* the parts in order: the pairs in the order of prims */
+        const pair *pairs = s->jobs[k].pairs;
+        for (int64_t q = 0; q < s->jobs[k].n; ++q) {
+            if (pairs[q].cell - c0 < span) {
+                sorted[off[pairs[q].cell]++] = pairs[q].prim;
+            }
+        }
+    }
+}
+
 /* Resolution of the subgrid for local cell `c` of node `nd` (depth `depth`), or
  * all zeros for no subgrid. */
 static void subgrid_resolution(builder *b, const gc_node *nd, int depth, int64_t c, uint32_t count,
@@ -645,26 +689,28 @@ static gc_status build_node(builder *b, const uint32_t *prims, int64_t n_prims, 
         free_pair_parts(b, jobs, parts);
         return st;
     }
-    memset(off, 0, off_bytes);
-    for (int k = 0; k < parts; ++k) {
-        const pair *pairs = jobs[k].pairs;
-        for (int64_t q = 0; q < jobs[k].n; ++q) {
-            off[pairs[q].cell + 1]++;
+    {
+        sort_job sj[GC_MAX_THREADS];
+        const int sparts = parts_for(b, ncell < n_pairs ? ncell : n_pairs);
+        for (int t = 0; t < sparts; ++t) {
+            sj[t].jobs = jobs;
+            sj[t].parts = parts;
+            sj[t].off = off;
+            sj[t].sorted = sorted;
+            sj[t].c0 = (uint32_t)part_start(ncell, t, sparts, 1);
+            sj[t].c1 = (uint32_t)part_start(ncell, t + 1, sparts, 1);
         }
-    }
-    for (int64_t c = 0; c < ncell; ++c) {
-        off[c + 1] += off[c];
-    }
-    for (int k = 0; k < parts; ++k) { /* the parts in order: the pairs in the order of prims */
-        const pair *pairs = jobs[k].pairs;
-        for (int64_t q = 0; q < jobs[k].n; ++q) {
-            sorted[off[pairs[q].cell]++] = pairs[q].prim;
+        off[0] = 0;
+        run_parts(sort_count_part, sj, sizeof *sj, sparts);
+        for (int64_t c = 0; c < ncell; ++c) {
+            off[c + 1] += off[c];
         }
+        run_parts(sort_scatter_part, sj, sizeof *sj, sparts);
+        for (int64_t c = ncell; c > 0; --c) { /* the scatter advanced each offset to its end */
+            off[c] = off[c - 1];
+        }
+        off[0] = 0;
     }
-    for (int64_t c = ncell; c > 0; --c) { /* the scatter advanced each offset to its end */
-        off[c] = off[c - 1];
-    }
-    off[0] = 0;
     free_pair_parts(b, jobs, parts);
 
     if (depth + 1 >= b->p->levels && !g->refs) {
@@ -799,6 +845,43 @@ static void scan_part(void *arg)
     j->bad = bad;
 }
 
+/* One part of a pass of the radix sort in scan_faces: items [k0, k1) of src. */
+enum { RADIX_BITS = 10, RADIX_BUCKETS = 1 << RADIX_BITS };
+typedef struct {
+    const uint64_t *src;
+    uint64_t *dst;       /* the pass's output, or NULL for the last pass ... */
+    uint32_t *order;     /* ... which writes the face indices here instead */
+    int64_t k0, k1;
+    int shift;
+    uint32_t *count;     /* RADIX_BUCKETS counters: the part's digit counts, then its first slots */
+} radix_job;
+
+static void radix_count_part(void *arg)
+{
+    radix_job *j = arg;
+    memset(j->count, 0, RADIX_BUCKETS * sizeof *j->count);
+    for (int64_t k = j->k0; k < j->k1; ++k) {
+        j->count[(j->src[k] >> j->shift) & (RADIX_BUCKETS - 1)]++;
+    }
+}
+
+static void radix_scatter_part(void *arg)
+{
+    radix_job *j = arg;
+    uint32_t *slot = j->count;
+    if (j->dst) {
+        for (int64_t k = j->k0; k < j->k1; ++k) {
+            const uint64_t x = j->src[k];
+            j->dst[slot[(x >> j->shift) & (RADIX_BUCKETS - 1)]++] = x;
+        }
+    } else {
+        for (int64_t k = j->k0; k < j->k1; ++k) {
+            const uint64_t x = j->src[k];
+            j->order[slot[(x >> j->shift) & (RADIX_BUCKETS - 1)]++] = (uint32_t)x;
+        }
+    }
+}
+
 /* One pass over the faces that validates the mesh as gc_check_mesh does, takes
  * the bounds [vlo, vhi] of the vertices the faces use, and puts the faces in
  * Morton order of their centroids (order receives the n face indices).
@@ -809,16 +892,23 @@ static void scan_part(void *arg)
  * near in space near in memory (1024 cells a side is finer than the grid levels
  * it serves); a stray unused vertex coarsens it and changes nothing else.  The
  * sort is an LSD radix sort of (code << 32 | face) words, stable, so equal codes
- * keep the mesh's order.  On a bad mesh gc_check_mesh names the first fault. */
+ * keep the mesh's order, its passes split in parts like the scan (radix_job).
+ * On a bad mesh gc_check_mesh names the first fault. */
 static gc_status scan_faces(builder *b, const gc_mesh *mesh, double vlo[3], double vhi[3], uint32_t *order)
 {
-    enum { AXIS_BITS = 10, DIGIT_BITS = 10, BUCKETS = 1 << DIGIT_BITS, PASSES = 3 }; /* 30 code bits */
+    enum { AXIS_BITS = 10, PASSES = 3 }; /* 30 code bits, RADIX_BITS a pass */
     const int64_t n = mesh->n_faces, nv = mesh->n_vertices;
     size_t bytes = (size_t)(n > 0 ? n : 1) * sizeof(uint64_t);
+    const int parts = parts_for(b, n);
+    const size_t count_bytes = (size_t)parts * RADIX_BUCKETS * sizeof(uint32_t);
     gc_status st;
     uint64_t *a = scratch_alloc(b, bytes, "the triangle order", &st);
     uint64_t *tmp = a ? scratch_alloc(b, bytes, "the triangle order", &st) : NULL;
-    if (!tmp) {
+    uint32_t *counts = tmp ? scratch_alloc(b, count_bytes, "the triangle order", &st) : NULL;
+    if (!counts) {
+        if (tmp) {
+            scratch_free(b, tmp, bytes);
+        }
         if (a) {
             scratch_free(b, a, bytes);
         }
@@ -843,7 +933,6 @@ static gc_status scan_faces(builder *b, const gc_mesh *mesh, double vlo[3], doub
         klo[i] = isfinite(klo[i]) ? klo[i] : 0.0;
     }
     scan_job jobs[GC_MAX_THREADS];
-    const int parts = parts_for(b, n);
     for (int k = 0; k < parts; ++k) {
         scan_job *j = &jobs[k];
         j->mesh = mesh;
@@ -870,6 +959,7 @@ static gc_status scan_faces(builder *b, const gc_mesh *mesh, double vlo[3], doub
         }
     }
     if (bad) {
+        scratch_free(b, counts, count_bytes);
         scratch_free(b, a, bytes);
         scratch_free(b, tmp, bytes);
         st = gc_check_mesh(mesh, 0, NULL, NULL, b->err);
@@ -879,26 +969,35 @@ static gc_status scan_faces(builder *b, const gc_mesh *mesh, double vlo[3], doub
         }
         return st;
     }
+    /* Each pass: the parts count their digits, each part's first slot for a digit
+     * follows the earlier digits' items and the earlier parts' items of that
+     * digit, and the parts scatter at once: the order one thread makes. */
+    radix_job rj[GC_MAX_THREADS];
     for (int pass = 0; pass < PASSES; ++pass) {
-        uint32_t count[BUCKETS + 1];
-        memset(count, 0, sizeof count);
-        const int shift = 32 + pass * DIGIT_BITS;
-        for (int64_t k = 0; k < n; ++k) {
-            count[((a[k] >> shift) & (BUCKETS - 1)) + 1]++;
+        for (int k = 0; k < parts; ++k) {
+            rj[k].src = a;
+            rj[k].dst = pass + 1 < PASSES ? tmp : NULL;
+            rj[k].order = order;
+            rj[k].k0 = part_start(n, k, parts, 1);
+            rj[k].k1 = part_start(n, k + 1, parts, 1);
+            rj[k].shift = 32 + pass * RADIX_BITS;
+            rj[k].count = counts + (size_t)k * RADIX_BUCKETS;
         }
-        for (int d = 0; d < BUCKETS; ++d) {
-            count[d + 1] += count[d];
+        run_parts(radix_count_part, rj, sizeof *rj, parts);
+        uint32_t next = 0;
+        for (int d = 0; d < RADIX_BUCKETS; ++d) {
+            for (int k = 0; k < parts; ++k) {
+                const uint32_t c = rj[k].count[d];
+                rj[k].count[d] = next;
+                next += c;
+            }
         }
-        for (int64_t k = 0; k < n; ++k) {
-            tmp[count[(a[k] >> shift) & (BUCKETS - 1)]++] = a[k];
-        }
+        run_parts(radix_scatter_part, rj, sizeof *rj, parts);
         uint64_t *sw = a;
         a = tmp;
         tmp = sw;
     }
-    for (int64_t k = 0; k < n; ++k) {
-        order[k] = (uint32_t)a[k];
-    }
+    scratch_free(b, counts, count_bytes);
     scratch_free(b, a, bytes);
     scratch_free(b, tmp, bytes);
     return GC_OK;
