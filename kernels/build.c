@@ -207,10 +207,11 @@ static gc_status reserve(builder *b, void **arr, int64_t *cap, int64_t need, siz
 /* Cell index range [*i0, *i1] that [a, b] spans along axis `ax` of node `nd`. */
 static void axis_range(const gc_node *nd, int ax, double a, double b, int32_t *i0, int32_t *i1)
 {
-    double fa = floor((a - nd->lo[ax]) * nd->inv_cell[ax]);
-    double fb = floor((b - nd->lo[ax]) * nd->inv_cell[ax]);
+    double fa = (a - nd->lo[ax]) * nd->inv_cell[ax];
+    double fb = (b - nd->lo[ax]) * nd->inv_cell[ax];
     double top = (double)(nd->n[ax] - 1);
-    /* NaN (a cell of zero width: a subgrid narrower than an ulp of its position) clamps to 0 */
+    /* Clamped to [0, top] first, the conversion's truncation is the floor.  NaN (a cell
+     * of zero width: a subgrid narrower than an ulp of its position) clamps to 0. */
     fa = !(fa > 0.0) ? 0.0 : (fa > top ? top : fa);
     fb = !(fb > 0.0) ? 0.0 : (fb > top ? top : fb);
     *i0 = (int32_t)fa;
