@@ -813,6 +813,14 @@ static void scan_part(void *arg)
     double h0 = -INFINITY, h1 = -INFINITY, h2 = -INFINITY;
     int bad = 0;
     for (int64_t f = j->f0; f < j->f1; ++f) {
+        if (f + PREFETCH_AHEAD / 2 < j->f1) { /* the corners a few faces ahead (in range: not checked yet) */
+            for (int c = 0; c < 3; ++c) {
+                const uint64_t ic = (uint64_t)fv[3 * (f + PREFETCH_AHEAD / 2) + c];
+                if (ic < nv) {
+                    GC_PREFETCH(v + 3 * ic);
+                }
+            }
+        }
         const int64_t i0 = fv[3 * f], i1 = fv[3 * f + 1], i2 = fv[3 * f + 2];
         if (((uint64_t)i0 >= nv) | ((uint64_t)i1 >= nv) | ((uint64_t)i2 >= nv)) {
             bad = 1;
