@@ -1236,7 +1236,10 @@ static gc_status build_grid(builder *b, const gc_mesh *mesh, gc_grid **out)
         }
         b->cap_refs = g->n_refs;
     }
-    st = check_memory(b, GC_PACK_BYTES(g->n_refs), "the per-reference triangles");
+    /* grid_bytes has counted sizeof(gc_tri) a reference for the packs since the references
+     * were sorted: only what the packs take beyond that is new */
+    st = check_memory(b, GC_PACK_BYTES(g->n_refs) - (uint64_t)g->n_refs * sizeof(gc_tri),
+                      "the per-reference triangles");
     if (st == GC_OK) {
         g->ref_tris = gc_big_alloc((size_t)GC_PACK_BYTES(g->n_refs > 0 ? g->n_refs : 1), &g->ref_tris_mapped);
         if (!g->ref_tris) {

@@ -441,6 +441,36 @@ static void test_refusals(void)
     mesh_free(&m);
 }
 
+/* The memory limit counts the packs once: a 2x2x2 grid over a sphere, whose
+ * references outweigh everything else, builds under a limit of 100 bytes a
+ * reference (the packs take 76, the references 4) and is refused under 40. */
+static void test_memory_limit_counts_packs_once(void)
+{
+    mesh_buf m = uv_sphere(100, 200, 1.0, 0.0, 7);
+    gc_mesh mesh = as_mesh(&m);
+    char err[GC_ERROR_LEN];
+    gc_grid *g = NULL;
+    gc_build_params p = gc_build_params_default();
+    p.resolution[0] = p.resolution[1] = p.resolution[2] = 2;
+    CHECK(gc_grid_build(&mesh, &p, &g, err) == GC_OK, "2x2x2 sphere grid refused: %s", err);
+    gc_grid_info info;
+    gc_grid_get_info(g, &info);
+    const uint64_t n = (uint64_t)info.n_refs;
+    gc_grid_free(g);
+    g = NULL;
+    p.memory_limit_bytes = 100 * n + ((uint64_t)64 << 10);
+    err[0] = 0;
+    CHECK(gc_grid_build(&mesh, &p, &g, err) == GC_OK,
+          "%llu references refused under 100 bytes a reference: %s", (unsigned long long)n, err);
+    gc_grid_free(g);
+    g = (gc_grid *)&err;
+    p.memory_limit_bytes = 40 * n;
+    err[0] = 0;
+    CHECK(gc_grid_build(&mesh, &p, &g, err) == GC_ERR_MEMORY_LIMIT && g == NULL && strstr(err, "memory limit"),
+          "%llu references accepted under 40 bytes a reference: %s", (unsigned long long)n, err);
+    mesh_free(&m);
+}
+
 /* Scaled scenes: hits scale exactly with the scene. */
 static void test_scaled_scenes(void)
 {
@@ -906,6 +936,7 @@ int main(void)
     test_prepared_overlap();
     test_mesh_sums();
     test_refusals();
+    test_memory_limit_counts_packs_once();
     test_isa_switch();
     test_threads_same_grid();
     test_unused_vertices();
