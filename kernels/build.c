@@ -20,9 +20,8 @@
  * face scan and its radix sort, the pair collection, the counting sort by cell
  * and the per-reference copies) run in that many contiguous parts at once, and
  * the parts are joined in order, so the grid is the same, byte for byte, as one
- * thread builds.  Built
- * with GC_NO_THREADS, or where a thread cannot start, the parts run one after
- * the other on the calling thread.
+ * thread builds.  Built with GC_NO_THREADS, or where a thread cannot start, the
+ * parts run one after the other on the calling thread.
  */
 #if !defined(GC_NO_THREADS) && !defined(_POSIX_C_SOURCE)
 #define _POSIX_C_SOURCE 200809L /* pthreads under -std=c99 */
@@ -391,6 +390,7 @@ static void collect_part(void *arg)
         int32_t r0[3], r1[3];
         double bmin[3], bmax[3];
         int spread = 0; /* axes along which the bounds span several cells or leave the node */
+        int slab = 0;   /* an axis along which they do not */
         for (int i = 0; i < 3; ++i) {
             double a = GC_MIN(t->v0[i], GC_MIN(t->v1[i], t->v2[i]));
             double c = GC_MAX(t->v0[i], GC_MAX(t->v1[i], t->v2[i]));
@@ -399,7 +399,9 @@ static void collect_part(void *arg)
             double w = GC_CELL_WIDEN_FRACTION * nd->cell[i] +
                        GC_CELL_WIDEN_ULPS * DBL_EPSILON * GC_MAX(fabs(a), fabs(c));
             axis_range(nd, i, a - w, c + w, &r0[i], &r1[i]);
-            spread += (r0[i] != r1[i]) | (a - w < nd->lo[i]) | (c + w > nd->hi[i]);
+            const int spreads = (r0[i] != r1[i]) | (a - w < nd->lo[i]) | (c + w > nd->hi[i]);
+            spread += spreads;
+            slab = spreads ? slab : i;
         }
         const int64_t span = (int64_t)(r1[0] - r0[0] + 1) * (r1[1] - r0[1] + 1) * (r1[2] - r0[2] + 1);
         /* Bounds in one cell, or in one row of cells whose cross-section holds
@@ -420,6 +422,30 @@ static void collect_part(void *arg)
                         if (row && ((bmin[0] > chi[0][x]) | (bmax[0] < clo[0][x]) | (bmin[1] > chi[1][y]) |
                                     (bmax[1] < clo[1][y]) | (bmin[2] > chi[2][z]) | (bmax[2] < clo[2][z]))) {
                             continue;
+                        }
+                        pairs[n].cell = (uint32_t)(x + nx * y + nxy * z);
+                        pairs[n].prim = prim;
+                        ++n;
+                    }
+                }
+            }
+            continue;
+        }
+        if (spread == 2) { /* bounds in one slab of cells along axis `slab`: the test in 2D */
+            gc_tri_slab_prep sp;
+            gc_tri_slab_prepare(&sp, t->v0, t->v1, t->v2, slab);
+            for (int32_t z = r0[2]; z <= r1[2]; ++z) {
+                for (int32_t y = r0[1]; y <= r1[1]; ++y) {
+                    for (int32_t x = r0[0]; x <= r1[0]; ++x) {
+                        const double lo3[3] = {clo[0][x], clo[1][y], clo[2][z]};
+                        const double hi3[3] = {chi[0][x], chi[1][y], chi[2][z]};
+                        const double m3[3] = {cmid[0][x], cmid[1][y], cmid[2][z]};
+                        const double h3[3] = {chalf[0][x], chalf[1][y], chalf[2][z]};
+                        if (!gc_tri_slab_prepared_overlap(&sp, lo3, hi3, m3, h3)) {
+                            continue;
+                        }
+                        if (n == cap && (st = grow_pairs(b, &pairs, &cap)) != GC_OK) {
+                            goto out;
                         }
                         pairs[n].cell = (uint32_t)(x + nx * y + nxy * z);
                         pairs[n].prim = prim;

@@ -97,4 +97,69 @@ GC_INLINE int gc_tri_box_prepared_overlap(const gc_tri_box_prep *p, double lo0, 
     return 1;
 }
 
+/* A triangle within one slab of cells along axis a (its bounds inside the slab's
+ * widened bounds on a) meets a box of that slab exactly where its projection on
+ * the other two axes (u, v) = (a + 1, a + 2) meets the box's.  Of the 3D test's
+ * thirteen axes, that leaves the box's u and v axes and the three axes a x edge,
+ * which gc_tri_slab_prepare and gc_tri_slab_prepared_overlap compute as
+ * gc_tri_box_prepare and gc_tri_box_prepared_overlap do, operation for operation:
+ * a box the 3D test accepts is accepted, and one it rejects only by the axes left
+ * out would need the triangle to leave the slab. */
+typedef struct {
+    double o[3];               /* the first vertex: the local origin */
+    double bmin[3], bmax[3];   /* the triangle's bounds */
+    double f[3][2], fa[3][2];  /* the edges' u and v components, and their magnitudes */
+    double pmin[3], pmax[3];   /* projections of the local vertices on a x edge */
+    int u, v;
+} gc_tri_slab_prep;
+
+GC_INLINE void gc_tri_slab_prepare(gc_tri_slab_prep *p, const double v0[3], const double v1[3],
+                                   const double v2[3], int a)
+{
+    const int u = (a + 1) % 3, v = (a + 2) % 3;
+    double w1[3], w2[3], e[3][3];
+    for (int i = 0; i < 3; ++i) {
+        p->o[i] = v0[i];
+        w1[i] = v1[i] - v0[i];
+        w2[i] = v2[i] - v0[i];
+        p->bmin[i] = GC_MIN(v0[i], GC_MIN(v1[i], v2[i]));
+        p->bmax[i] = GC_MAX(v0[i], GC_MAX(v1[i], v2[i]));
+        e[0][i] = w1[i];
+        e[1][i] = v2[i] - v1[i];
+        e[2][i] = v0[i] - v2[i];
+    }
+    for (int k = 0; k < 3; ++k) {
+        /* a x f has components -f_v on u and f_u on v */
+        const double q1 = -e[k][v] * w1[u] + e[k][u] * w1[v], q2 = -e[k][v] * w2[u] + e[k][u] * w2[v];
+        p->pmin[k] = GC_MIN(0.0, GC_MIN(q1, q2));
+        p->pmax[k] = GC_MAX(0.0, GC_MAX(q1, q2));
+        p->f[k][0] = e[k][u];
+        p->f[k][1] = e[k][v];
+        p->fa[k][0] = fabs(e[k][u]);
+        p->fa[k][1] = fabs(e[k][v]);
+    }
+    p->u = u;
+    p->v = v;
+}
+
+/* The test for a prepared slab triangle and the box [lo, hi] with centre m and half
+ * size h (as gc_tri_box_prepared_overlap takes them, per axis). */
+GC_INLINE int gc_tri_slab_prepared_overlap(const gc_tri_slab_prep *p, const double lo[3], const double hi[3],
+                                           const double m[3], const double h[3])
+{
+    if ((p->bmin[0] > hi[0]) | (p->bmax[0] < lo[0]) | (p->bmin[1] > hi[1]) | (p->bmax[1] < lo[1]) |
+        (p->bmin[2] > hi[2]) | (p->bmax[2] < lo[2])) {
+        return 0;
+    }
+    const int u = p->u, v = p->v;
+    const double cu = m[u] - p->o[u], cv = m[v] - p->o[v];
+    for (int k = 0; k < 3; ++k) {
+        const double d = -p->f[k][1] * cu + p->f[k][0] * cv, r = p->fa[k][1] * h[u] + p->fa[k][0] * h[v];
+        if ((p->pmin[k] - d > r) | (p->pmax[k] - d < -r)) {
+            return 0;
+        }
+    }
+    return 1;
+}
+
 #endif /* GC_OVERLAP_H */

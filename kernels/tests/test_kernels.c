@@ -622,6 +622,41 @@ static void test_prepared_overlap(void)
           (long long)differ, (long long)n);
     CHECK(overlaps > n / 10 && overlaps < n - n / 10, "overlap cases not mixed: %lld of %lld overlap",
           (long long)overlaps, (long long)n);
+
+    /* a triangle within the box's slab along one axis: the 2D test agrees with the 3D one */
+    differ = overlaps = 0;
+    for (int64_t k = 0; k < n; ++k) {
+        rng_seed(19000 + (uint64_t)k);
+        const int a = (int)(k % 3);
+        const double shift = (k % 5 == 0) ? 1e6 : 0.0;
+        const double size = pow(10.0, -3.0 * rng_uniform());
+        double v[3][3], lo[3], hi[3], m[3], h[3];
+        for (int i = 0; i < 3; ++i) {
+            const double c = shift + size * (2.0 * rng_uniform() - 1.0), hh = size * rng_uniform();
+            lo[i] = c - hh;
+            hi[i] = c + hh;
+            m[i] = 0.5 * (lo[i] + hi[i]);
+            h[i] = 0.5 * (hi[i] - lo[i]);
+        }
+        for (int j = 0; j < 3; ++j) {
+            for (int i = 0; i < 3; ++i) {
+                v[j][i] = i == a ? lo[i] + (hi[i] - lo[i]) * rng_uniform()
+                                 : shift + size * (2.0 * rng_uniform() - 1.0);
+            }
+            if (k % 7 == 3) { /* a vertex on the slab's face */
+                v[j][a] = (j == 0) ? lo[a] : v[j][a];
+            }
+        }
+        gc_tri_slab_prep sp;
+        gc_tri_slab_prepare(&sp, v[0], v[1], v[2], a);
+        const int want = gc_triangle_box_overlap(v[0], v[1], v[2], lo, hi);
+        differ += gc_tri_slab_prepared_overlap(&sp, lo, hi, m, h) != want;
+        overlaps += want;
+    }
+    CHECK(differ == 0, "2D slab triangle/box test differs from the 3D one on %lld of %lld cases",
+          (long long)differ, (long long)n);
+    CHECK(overlaps > n / 10 && overlaps < n - n / 10, "slab overlap cases not mixed: %lld of %lld overlap",
+          (long long)overlaps, (long long)n);
 }
 
 /* The same grid, byte for byte, for any number of build threads: uniform and
