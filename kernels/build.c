@@ -431,39 +431,24 @@ static void collect_part(void *arg)
             }
             continue;
         }
-        if (spread == 2) { /* bounds in one slab of cells along axis `slab`: the test in 2D */
-            gc_tri_slab_prep sp;
-            gc_tri_slab_prepare(&sp, t->v0, t->v1, t->v2, slab);
-            for (int32_t z = r0[2]; z <= r1[2]; ++z) {
-                for (int32_t y = r0[1]; y <= r1[1]; ++y) {
-                    for (int32_t x = r0[0]; x <= r1[0]; ++x) {
-                        const double lo3[3] = {clo[0][x], clo[1][y], clo[2][z]};
-                        const double hi3[3] = {chi[0][x], chi[1][y], chi[2][z]};
-                        const double m3[3] = {cmid[0][x], cmid[1][y], cmid[2][z]};
-                        const double h3[3] = {chalf[0][x], chalf[1][y], chalf[2][z]};
-                        if (!gc_tri_slab_prepared_overlap(&sp, lo3, hi3, m3, h3)) {
-                            continue;
-                        }
-                        if (n == cap && (st = grow_pairs(b, &pairs, &cap)) != GC_OK) {
-                            goto out;
-                        }
-                        pairs[n].cell = (uint32_t)(x + nx * y + nxy * z);
-                        pairs[n].prim = prim;
-                        ++n;
-                    }
-                }
-            }
-            continue;
-        }
+        /* bounds in one slab of cells along axis `slab` (spread 2): the test in 2D */
+        const int in_slab = spread == 2;
         gc_tri_box_prep prep;
-        gc_tri_box_prepare(&prep, t->v0, t->v1, t->v2);
+        gc_tri_slab_prep sp;
+        if (in_slab) {
+            gc_tri_slab_prepare(&sp, t->v0, t->v1, t->v2, slab);
+        } else {
+            gc_tri_box_prepare(&prep, t->v0, t->v1, t->v2);
+        }
         for (int32_t z = r0[2]; z <= r1[2]; ++z) {
             const double lo2 = clo[2][z], hi2 = chi[2][z], m2 = cmid[2][z], h2 = chalf[2][z];
             for (int32_t y = r0[1]; y <= r1[1]; ++y) {
                 const double lo1 = clo[1][y], hi1 = chi[1][y], m1 = cmid[1][y], h1 = chalf[1][y];
                 for (int32_t x = r0[0]; x <= r1[0]; ++x) {
-                    if (!gc_tri_box_prepared_overlap(&prep, clo[0][x], lo1, lo2, chi[0][x], hi1, hi2,
-                                                     cmid[0][x], m1, m2, chalf[0][x], h1, h2)) {
+                    if (!(in_slab ? gc_tri_slab_prepared_overlap(&sp, clo[0][x], lo1, lo2, chi[0][x], hi1, hi2,
+                                                                 cmid[0][x], m1, m2, chalf[0][x], h1, h2)
+                                  : gc_tri_box_prepared_overlap(&prep, clo[0][x], lo1, lo2, chi[0][x], hi1, hi2,
+                                                                cmid[0][x], m1, m2, chalf[0][x], h1, h2))) {
                         continue;
                     }
                     if (n == cap && (st = grow_pairs(b, &pairs, &cap)) != GC_OK) {

@@ -24,20 +24,28 @@ typedef struct {
     double emin[3][3], emax[3][3]; /* [edge][box axis]: projections on box axis x edge */
 } gc_tri_box_prep;
 
-GC_INLINE void gc_tri_box_prepare(gc_tri_box_prep *p, const double v0[3], const double v1[3],
-                                  const double v2[3])
+/* What both tests take from the triangle: the local origin o (its first vertex), the
+ * other vertices relative to it (w1, w2), the edges e and the bounds. */
+GC_INLINE void gc_tri_local(const double v0[3], const double v1[3], const double v2[3], double o[3],
+                            double w1[3], double w2[3], double e[3][3], double bmin[3], double bmax[3])
 {
-    double w1[3], w2[3], e[3][3];
     for (int i = 0; i < 3; ++i) {
-        p->o[i] = v0[i];
+        o[i] = v0[i];
         w1[i] = v1[i] - v0[i];
         w2[i] = v2[i] - v0[i];
-        p->bmin[i] = GC_MIN(v0[i], GC_MIN(v1[i], v2[i]));
-        p->bmax[i] = GC_MAX(v0[i], GC_MAX(v1[i], v2[i]));
+        bmin[i] = GC_MIN(v0[i], GC_MIN(v1[i], v2[i]));
+        bmax[i] = GC_MAX(v0[i], GC_MAX(v1[i], v2[i]));
         e[0][i] = w1[i];
         e[1][i] = v2[i] - v1[i];
         e[2][i] = v0[i] - v2[i];
     }
+}
+
+GC_INLINE void gc_tri_box_prepare(gc_tri_box_prep *p, const double v0[3], const double v1[3],
+                                  const double v2[3])
+{
+    double w1[3], w2[3], e[3][3];
+    gc_tri_local(v0, v1, v2, p->o, w1, w2, e, p->bmin, p->bmax);
     double *n = p->n;
     n[0] = e[0][1] * e[1][2] - e[0][2] * e[1][1];
     n[1] = e[0][2] * e[1][0] - e[0][0] * e[1][2];
@@ -118,16 +126,7 @@ GC_INLINE void gc_tri_slab_prepare(gc_tri_slab_prep *p, const double v0[3], cons
 {
     const int u = (a + 1) % 3, v = (a + 2) % 3;
     double w1[3], w2[3], e[3][3];
-    for (int i = 0; i < 3; ++i) {
-        p->o[i] = v0[i];
-        w1[i] = v1[i] - v0[i];
-        w2[i] = v2[i] - v0[i];
-        p->bmin[i] = GC_MIN(v0[i], GC_MIN(v1[i], v2[i]));
-        p->bmax[i] = GC_MAX(v0[i], GC_MAX(v1[i], v2[i]));
-        e[0][i] = w1[i];
-        e[1][i] = v2[i] - v1[i];
-        e[2][i] = v0[i] - v2[i];
-    }
+    gc_tri_local(v0, v1, v2, p->o, w1, w2, e, p->bmin, p->bmax);
     for (int k = 0; k < 3; ++k) {
         /* a x f has components -f_v on u and f_u on v */
         const double q1 = -e[k][v] * w1[u] + e[k][u] * w1[v], q2 = -e[k][v] * w2[u] + e[k][u] * w2[v];
@@ -143,14 +142,16 @@ GC_INLINE void gc_tri_slab_prepare(gc_tri_slab_prep *p, const double v0[3], cons
 }
 
 /* The test for a prepared slab triangle and the box [lo, hi] with centre m and half
- * size h (as gc_tri_box_prepared_overlap takes them, per axis). */
-GC_INLINE int gc_tri_slab_prepared_overlap(const gc_tri_slab_prep *p, const double lo[3], const double hi[3],
-                                           const double m[3], const double h[3])
+ * size h, per axis, as gc_tri_box_prepared_overlap takes them. */
+GC_INLINE int gc_tri_slab_prepared_overlap(const gc_tri_slab_prep *p, double lo0, double lo1, double lo2,
+                                           double hi0, double hi1, double hi2, double m0, double m1,
+                                           double m2, double h0, double h1, double h2)
 {
-    if ((p->bmin[0] > hi[0]) | (p->bmax[0] < lo[0]) | (p->bmin[1] > hi[1]) | (p->bmax[1] < lo[1]) |
-        (p->bmin[2] > hi[2]) | (p->bmax[2] < lo[2])) {
+    if ((p->bmin[0] > hi0) | (p->bmax[0] < lo0) | (p->bmin[1] > hi1) | (p->bmax[1] < lo1) |
+        (p->bmin[2] > hi2) | (p->bmax[2] < lo2)) {
         return 0;
     }
+    const double m[3] = {m0, m1, m2}, h[3] = {h0, h1, h2};
     const int u = p->u, v = p->v;
     const double cu = m[u] - p->o[u], cv = m[v] - p->o[v];
     for (int k = 0; k < 3; ++k) {

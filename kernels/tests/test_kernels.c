@@ -650,7 +650,8 @@ static void test_prepared_overlap(void)
         gc_tri_slab_prep sp;
         gc_tri_slab_prepare(&sp, v[0], v[1], v[2], a);
         const int want = gc_triangle_box_overlap(v[0], v[1], v[2], lo, hi);
-        differ += gc_tri_slab_prepared_overlap(&sp, lo, hi, m, h) != want;
+        differ += gc_tri_slab_prepared_overlap(&sp, lo[0], lo[1], lo[2], hi[0], hi[1], hi[2], m[0], m[1], m[2], h[0],
+                                               h[1], h[2]) != want;
         overlaps += want;
     }
     CHECK(differ == 0, "2D slab triangle/box test differs from the 3D one on %lld of %lld cases",
