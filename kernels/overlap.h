@@ -72,6 +72,15 @@ GC_INLINE void gc_tri_box_prepare(gc_tri_box_prep *p, const double v0[3], const 
     }
 }
 
+/* The box face normals, the first axes of both tests below: the triangle's bounds
+ * [bmin, bmax] miss the box [lo, hi]. */
+GC_INLINE int gc_bounds_apart(const double bmin[3], const double bmax[3], double lo0, double lo1, double lo2,
+                              double hi0, double hi1, double hi2)
+{
+    return (bmin[0] > hi0) | (bmax[0] < lo0) | (bmin[1] > hi1) | (bmax[1] < lo1) | (bmin[2] > hi2) |
+           (bmax[2] < lo2);
+}
+
 /* The separating-axis test of gc_triangle_box_overlap for a prepared triangle
  * and the box [lo, hi] with centre m and half size h (m = (lo + hi) / 2 and
  * h = (hi - lo) / 2, per axis). */
@@ -79,9 +88,7 @@ GC_INLINE int gc_tri_box_prepared_overlap(const gc_tri_box_prep *p, double lo0, 
                                           double hi0, double hi1, double hi2, double m0, double m1,
                                           double m2, double h0, double h1, double h2)
 {
-    /* box face normals: the bounding boxes overlap */
-    if ((p->bmin[0] > hi0) | (p->bmax[0] < lo0) | (p->bmin[1] > hi1) | (p->bmax[1] < lo1) |
-        (p->bmin[2] > hi2) | (p->bmax[2] < lo2)) {
+    if (gc_bounds_apart(p->bmin, p->bmax, lo0, lo1, lo2, hi0, hi1, hi2)) { /* box face normals */
         return 0;
     }
     const double c0 = m0 - p->o[0], c1 = m1 - p->o[1], c2 = m2 - p->o[2];
@@ -147,8 +154,7 @@ GC_INLINE int gc_tri_slab_prepared_overlap(const gc_tri_slab_prep *p, double lo0
                                            double hi0, double hi1, double hi2, double m0, double m1,
                                            double m2, double h0, double h1, double h2)
 {
-    if ((p->bmin[0] > hi0) | (p->bmax[0] < lo0) | (p->bmin[1] > hi1) | (p->bmax[1] < lo1) |
-        (p->bmin[2] > hi2) | (p->bmax[2] < lo2)) {
+    if (gc_bounds_apart(p->bmin, p->bmax, lo0, lo1, lo2, hi0, hi1, hi2)) {
         return 0;
     }
     const double m[3] = {m0, m1, m2}, h[3] = {h0, h1, h2};
