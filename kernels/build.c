@@ -808,7 +808,8 @@ typedef struct {
     const gc_mesh *mesh;
     int64_t f0, f1;
     double klo[3], scale[3], top;
-    uint64_t *codes;
+    uint64_t *codes;     /* the faces' Morton codes, or NULL: the mesh's order ... */
+    uint32_t *order;     /* ... written here */
     double lo[3], hi[3]; /* out: bounds of the part's vertices */
     int bad;             /* out: an index out of range or a vertex not finite */
 } scan_job;
@@ -851,6 +852,10 @@ static void scan_part(void *arg)
         h0 = GC_MAX(h0, GC_MAX(p0[0], GC_MAX(p1[0], p2[0])));
         h1 = GC_MAX(h1, GC_MAX(p0[1], GC_MAX(p1[1], p2[1])));
         h2 = GC_MAX(h2, GC_MAX(p0[2], GC_MAX(p1[2], p2[2])));
+        if (!j->codes) {
+            j->order[f] = (uint32_t)f;
+            continue;
+        }
         uint32_t q[3];
         for (int i = 0; i < 3; ++i) {
             double u = ((p0[i] + p1[i] + p2[i]) * (1.0 / 3.0) - j->klo[i]) * j->scale[i];
@@ -902,9 +907,54 @@ static void radix_scatter_part(void *arg)
     }
 }
 
+/* Whether the mesh's own face order is scattered in space.  Of (at most)
+ * SAMPLE_PAIRS pairs of consecutive faces, evenly spread over the mesh, a pair
+ * is near when the centroids lie no farther apart on any axis than the sum of
+ * the two faces' largest extents (always so for faces that touch).  A mesh most
+ * of whose sampled pairs are near (scans, CAD exports, strips: faces written
+ * as their surface is walked) keeps its order, which is then as local as the
+ * Morton order; any other (a soup, shuffled faces) is put in Morton order.  A
+ * sampled face with an index out of range or a corner that is not finite is
+ * not near (the face pass then refuses the mesh). */
+enum { SAMPLE_PAIRS = 1024 };
+static int faces_scattered(const gc_mesh *mesh)
+{
+    const int64_t n = mesh->n_faces;
+    const uint64_t nv = (uint64_t)mesh->n_vertices;
+    const int64_t pairs = n - 1 < SAMPLE_PAIRS ? n - 1 : SAMPLE_PAIRS;
+    int64_t near = 0;
+    for (int64_t s = 0; s < pairs; ++s) {
+        const int64_t f = s * (n - 1) / pairs; /* < n - 1 */
+        const int64_t *fv = mesh->faces + 3 * f;
+        int ok = 1;
+        for (int c = 0; c < 6; ++c) {
+            ok &= (uint64_t)fv[c] < nv;
+        }
+        if (!ok) {
+            continue;
+        }
+        double mid[2][3], ext[2] = {0.0, 0.0};
+        for (int t = 0; t < 2; ++t) {
+            const double *p0 = mesh->vertices + 3 * fv[3 * t], *p1 = mesh->vertices + 3 * fv[3 * t + 1],
+                         *p2 = mesh->vertices + 3 * fv[3 * t + 2];
+            for (int i = 0; i < 3; ++i) {
+                const double lo = GC_MIN(p0[i], GC_MIN(p1[i], p2[i])), hi = GC_MAX(p0[i], GC_MAX(p1[i], p2[i]));
+                mid[t][i] = 0.5 * (lo + hi);
+                ext[t] = GC_MAX(ext[t], hi - lo);
+            }
+        }
+        const double reach = ext[0] + ext[1];
+        near += (fabs(mid[0][0] - mid[1][0]) <= reach) & (fabs(mid[0][1] - mid[1][1]) <= reach) &
+                (fabs(mid[0][2] - mid[1][2]) <= reach);
+    }
+    return 2 * near < pairs;
+}
+
 /* One pass over the faces that validates the mesh as gc_check_mesh does, takes
  * the bounds [vlo, vhi] of the vertices the faces use, and puts the faces in
- * Morton order of their centroids (order receives the n face indices).
+ * Morton order of their centroids where the mesh's own order is scattered
+ * (faces_scattered), in the mesh's order elsewhere (order receives the n face
+ * indices).
  *
  * The codes take 10 bits per axis of the box of every finite vertex, which a
  * sequential pass over the vertices finds before the faces are read, so that the
@@ -921,22 +971,27 @@ static gc_status scan_faces(builder *b, const gc_mesh *mesh, double vlo[3], doub
     size_t bytes = (size_t)(n > 0 ? n : 1) * sizeof(uint64_t);
     const int parts = parts_for(b, n);
     const size_t count_bytes = (size_t)parts * RADIX_BUCKETS * sizeof(uint32_t);
-    gc_status st;
-    uint64_t *a = scratch_alloc(b, bytes, "the triangle order", &st);
-    uint64_t *tmp = a ? scratch_alloc(b, bytes, "the triangle order", &st) : NULL;
-    uint32_t *counts = tmp ? scratch_alloc(b, count_bytes, "the triangle order", &st) : NULL;
-    if (!counts) {
-        if (tmp) {
-            scratch_free(b, tmp, bytes);
+    const int sort = faces_scattered(mesh);
+    gc_status st = GC_OK;
+    uint64_t *a = NULL, *tmp = NULL;
+    uint32_t *counts = NULL;
+    if (sort) {
+        a = scratch_alloc(b, bytes, "the triangle order", &st);
+        tmp = a ? scratch_alloc(b, bytes, "the triangle order", &st) : NULL;
+        counts = tmp ? scratch_alloc(b, count_bytes, "the triangle order", &st) : NULL;
+        if (!counts) {
+            if (tmp) {
+                scratch_free(b, tmp, bytes);
+            }
+            if (a) {
+                scratch_free(b, a, bytes);
+            }
+            return st;
         }
-        if (a) {
-            scratch_free(b, a, bytes);
-        }
-        return st;
     }
     const double *v = mesh->vertices;
     double klo[3] = {INFINITY, INFINITY, INFINITY}, khi[3] = {-INFINITY, -INFINITY, -INFINITY};
-    for (int64_t k = 0; k < nv; ++k) {
+    for (int64_t k = 0; sort && k < nv; ++k) {
         const double *p = v + 3 * k;
         if ((p[0] - p[0]) + (p[1] - p[1]) + (p[2] - p[2]) == 0.0) { /* finite */
             for (int i = 0; i < 3; ++i) {
@@ -964,6 +1019,7 @@ static gc_status scan_faces(builder *b, const gc_mesh *mesh, double vlo[3], doub
             j->scale[i] = scale[i];
         }
         j->codes = a;
+        j->order = order;
     }
     run_parts(scan_part, jobs, sizeof *jobs, parts);
     int bad = 0;
@@ -979,15 +1035,20 @@ static gc_status scan_faces(builder *b, const gc_mesh *mesh, double vlo[3], doub
         }
     }
     if (bad) {
-        scratch_free(b, counts, count_bytes);
-        scratch_free(b, a, bytes);
-        scratch_free(b, tmp, bytes);
+        if (sort) {
+            scratch_free(b, counts, count_bytes);
+            scratch_free(b, a, bytes);
+            scratch_free(b, tmp, bytes);
+        }
         st = gc_check_mesh(mesh, 0, NULL, NULL, b->err);
         if (st == GC_OK) { /* cannot happen: the two passes test the same conditions */
             gc_set_error(b->err, "the mesh has a face with a vertex index out of range or a vertex that is not finite");
             st = GC_ERR_ARGUMENT;
         }
         return st;
+    }
+    if (!sort) { /* the scan wrote the mesh's order */
+        return GC_OK;
     }
     /* Each pass: the parts count their digits, each part's first slot for a digit
      * follows the earlier digits' items and the earlier parts' items of that

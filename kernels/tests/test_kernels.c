@@ -726,6 +726,93 @@ static void test_threads_same_grid(void)
     }
 }
 
+/* The faces of cell c of a uniform grid, in reference order, into out (room for its count). */
+static uint32_t cell_faces(const gc_grid *g, int64_t c, int32_t *out)
+{
+    const gc_cell cell = g->cells[c];
+    for (uint32_t k = 0; k < cell.count; ++k) {
+        const uint32_t r = cell.begin + k;
+        out[k] = g->ref_tris[r / GC_LANES].id[r % GC_LANES];
+    }
+    return cell.count;
+}
+
+static int cmp_i32(const void *a, const void *b)
+{
+    const int32_t x = *(const int32_t *)a, y = *(const int32_t *)b;
+    return (x > y) - (x < y);
+}
+
+/* The face order the build reads: a mesh whose consecutive faces are neighbours
+ * (the UV sphere, written ring by ring) keeps it, so each cell lists its faces by
+ * index; the same faces shuffled are put in Morton order.  Either way each cell
+ * holds the same faces, and first hits agree with brute force. */
+static void test_face_order(void)
+{
+    mesh_buf m = uv_sphere(120, 180, 0.5, 0.05, 41);
+    mesh_buf s = m; /* the faces shuffled: s.f[t] = m.f[perm[t]] */
+    s.f = malloc((size_t)m.nf * 3 * sizeof(int64_t));
+    int32_t *perm = malloc((size_t)m.nf * sizeof(int32_t));
+    for (int64_t t = 0; t < m.nf; ++t) {
+        perm[t] = (int32_t)t;
+    }
+    rng_seed(42);
+    for (int64_t t = m.nf - 1; t > 0; --t) {
+        const int64_t u = (int64_t)(rng_uniform() * (double)(t + 1));
+        const int32_t x = perm[t];
+        perm[t] = perm[u], perm[u] = x;
+    }
+    for (int64_t t = 0; t < m.nf; ++t) {
+        memcpy(s.f + 3 * t, m.f + 3 * (int64_t)perm[t], 3 * sizeof(int64_t));
+    }
+    gc_build_params p = gc_build_params_default();
+    p.resolution[0] = 23, p.resolution[1] = 19, p.resolution[2] = 21;
+    gc_mesh mm = as_mesh(&m), ms = as_mesh(&s);
+    gc_grid *gm = NULL, *gs = NULL;
+    char err[GC_ERROR_LEN];
+    CHECK(gc_grid_build(&mm, &p, &gm, err) == GC_OK, "sphere: %s", err);
+    CHECK(gc_grid_build(&ms, &p, &gs, err) == GC_OK, "shuffled sphere: %s", err);
+    if (gm && gs) {
+        int32_t *a = malloc((size_t)m.nf * sizeof(int32_t)), *b = malloc((size_t)m.nf * sizeof(int32_t));
+        int64_t unordered_m = 0, unordered_s = 0, differ = 0, refs = 0;
+        for (int64_t c = 0; c < (int64_t)p.resolution[0] * p.resolution[1] * p.resolution[2]; ++c) {
+            const uint32_t na = cell_faces(gm, c, a), nb = cell_faces(gs, c, b);
+            int out_m = 0, out_s = 0;
+            for (uint32_t k = 1; k < na; ++k) {
+                out_m |= a[k] <= a[k - 1];
+            }
+            for (uint32_t k = 0; k < nb; ++k) {
+                out_s |= k > 0 && b[k] <= b[k - 1];
+            }
+            for (uint32_t k = 0; k < nb; ++k) {
+                b[k] = perm[b[k]]; /* the shuffled mesh's face b[k] is the sphere's perm[b[k]] */
+            }
+            unordered_m += out_m;
+            unordered_s += out_s;
+            qsort(a, na, sizeof *a, cmp_i32);
+            qsort(b, nb, sizeof *b, cmp_i32);
+            differ += na != nb || (na > 0 && memcmp(a, b, na * sizeof *a) != 0);
+            refs += na;
+        }
+        CHECK(refs > m.nf && differ == 0, "shuffling the faces changed %lld cells' faces (%lld references)",
+              (long long)differ, (long long)refs);
+        CHECK(unordered_m == 0, "the sphere's order was not kept: %lld cells list faces out of order",
+              (long long)unordered_m);
+        CHECK(unordered_s > 0, "the shuffled faces were not reordered: every cell lists them by index");
+        free(a), free(b);
+    }
+    gc_grid_free(gm), gc_grid_free(gs);
+    const int64_t n = 2000;
+    double *o = malloc((size_t)n * 3 * sizeof(double)), *d = malloc((size_t)n * 3 * sizeof(double));
+    double lo[3], hi[3];
+    CHECK(gc_mesh_box(&mm, lo, hi, err) == GC_OK, "box: %s", err);
+    random_rays(n, lo, hi, 43, o, d);
+    compare_with_brute(&m, &p, n, o, d, "sphere in its own face order");
+    compare_with_brute(&s, &p, n, o, d, "sphere with shuffled faces");
+    free(o), free(d), free(perm), free(s.f);
+    mesh_free(&m);
+}
+
 /* Vertices no face uses are ignored, even a NaN or a far one (the build's
  * Morton codes are taken over the box of every finite vertex). */
 static void test_unused_vertices(void)
@@ -975,6 +1062,7 @@ int main(void)
     test_memory_limit_counts_packs_once();
     test_isa_switch();
     test_threads_same_grid();
+    test_face_order();
     test_unused_vertices();
     test_grids_match_brute_force();
     test_axis_parallel_and_cell_faces();
