@@ -648,9 +648,24 @@ static gc_status build_node(builder *b, const uint32_t *prims, int64_t n_prims, 
     if (st != GC_OK) {
         return st;
     }
-    st = reserve(b, (void **)&g->cells, &b->cap_cells, g->n_cells + ncell, sizeof(gc_cell), "the cells");
-    if (st != GC_OK) {
-        return st;
+    if (!g->cells && b->p->levels == 1) {
+        /* a uniform grid's cells, its only node's: their final array, mapped as
+         * gc_big_move would map them (no doubling slack, no copy at the end) */
+        st = check_memory(b, (uint64_t)ncell * sizeof(gc_cell), "the cells");
+        if (st != GC_OK) {
+            return st;
+        }
+        g->cells = gc_big_alloc((size_t)ncell * sizeof(gc_cell), &g->cells_mapped);
+        if (!g->cells) {
+            gc_set_error(b->err, "out of memory allocating %lld cells", (long long)ncell);
+            return GC_ERR_NO_MEMORY;
+        }
+        b->cap_cells = ncell;
+    } else {
+        st = reserve(b, (void **)&g->cells, &b->cap_cells, g->n_cells + ncell, sizeof(gc_cell), "the cells");
+        if (st != GC_OK) {
+            return st;
+        }
     }
     const uint32_t node_index = (uint32_t)g->n_nodes++;
     const uint32_t first = (uint32_t)g->n_cells;
@@ -1337,7 +1352,9 @@ static gc_status build_grid(builder *b, const gc_mesh *mesh, gc_grid **out)
     /* the packs hold all traversal reads: the build's references go */
     free(g->refs);
     g->refs = NULL;
-    g->cells = gc_big_move(g->cells, (size_t)g->n_cells * sizeof(gc_cell), &g->cells_mapped);
+    if (!g->cells_mapped) {
+        g->cells = gc_big_move(g->cells, (size_t)g->n_cells * sizeof(gc_cell), &g->cells_mapped);
+    }
     *out = g;
     return GC_OK;
 }
