@@ -29,6 +29,10 @@
 #include "gc_internal.h"
 #include "overlap.h"
 
+#if defined(__SSE2__)
+#include <emmintrin.h> /* cell_range */
+#endif
+
 #include <float.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -203,6 +207,7 @@ static gc_status reserve(builder *b, void **arr, int64_t *cap, int64_t need, siz
     return GC_OK;
 }
 
+#if !defined(__SSE2__) /* else cell_range does it in SSE2 */
 /* Cell index range [*i0, *i1] that [a, b] spans along axis `ax` of node `nd`. */
 static void axis_range(const gc_node *nd, int ax, double a, double b, int32_t *i0, int32_t *i1)
 {
@@ -216,6 +221,7 @@ static void axis_range(const gc_node *nd, int ax, double a, double b, int32_t *i
     *i0 = (int32_t)fa;
     *i1 = (int32_t)fb;
 }
+#endif
 
 /* The widened box of cell (x, y, z). */
 static void cell_box(const gc_node *nd, int32_t x, int32_t y, int32_t z, double lo[3], double hi[3])
@@ -351,6 +357,100 @@ GC_INLINE void prefetch_face(const double *vert, const int64_t *faces, const uin
     }
 }
 
+/* A triangle's bounds [bmin, bmax], the cells [r0, r1] its widened bounds span in
+ * node nd, how many axes they spread along (span several cells or leave the node)
+ * and an axis they do not (the last such, or 0): per axis as axis_range and
+ * the widening in cell_box have it, operation for operation.  With SSE2 the x and
+ * y axes share one register and z takes another, whose minimum, maximum,
+ * comparison and conversion instructions give the scalar code's results (a
+ * clamp's NaN to 0 included). */
+typedef struct {
+    const gc_node *nd;
+    double fcell[3]; /* GC_CELL_WIDEN_FRACTION times the cell size */
+    double top[3];   /* the last cell's index */
+} range_consts;
+
+static void range_consts_init(range_consts *c, const gc_node *nd)
+{
+    c->nd = nd;
+    for (int i = 0; i < 3; ++i) {
+        c->fcell[i] = GC_CELL_WIDEN_FRACTION * nd->cell[i];
+        c->top[i] = (double)(nd->n[i] - 1);
+    }
+}
+
+GC_INLINE void cell_range(const range_consts *c, const double *v0, const double *v1, const double *v2,
+                          double bmin[3], double bmax[3], int32_t r0[3], int32_t r1[3], int *spread_out,
+                          int *slab_out)
+{
+    const gc_node *nd = c->nd;
+#if defined(__SSE2__)
+    /* the slab axis for each set of spreading axes (bit i: axis i spreads) */
+    static const int8_t last_clear[8] = {2, 2, 2, 2, 1, 1, 0, 0};
+    const __m128d ulps = _mm_set1_pd(GC_CELL_WIDEN_ULPS * DBL_EPSILON);
+    const __m128d zero = _mm_setzero_pd();
+    const __m128d sign = _mm_set1_pd(-0.0);
+    __m128d lo[2], hi[2];
+    __m128i q0[2], q1[2];
+    int mask = 0;
+    for (int h = 0; h < 2; ++h) { /* h = 0: x and y; h = 1: z (its upper lane unused) */
+        __m128d a0, a1, a2, nlo, nhi, inv, fcell, top;
+        if (h == 0) {
+            a0 = _mm_loadu_pd(v0), a1 = _mm_loadu_pd(v1), a2 = _mm_loadu_pd(v2);
+            nlo = _mm_loadu_pd(nd->lo), nhi = _mm_loadu_pd(nd->hi), inv = _mm_loadu_pd(nd->inv_cell);
+            fcell = _mm_loadu_pd(c->fcell), top = _mm_loadu_pd(c->top);
+        } else {
+            a0 = _mm_load_sd(v0 + 2), a1 = _mm_load_sd(v1 + 2), a2 = _mm_load_sd(v2 + 2);
+            nlo = _mm_load_sd(nd->lo + 2), nhi = _mm_load_sd(nd->hi + 2), inv = _mm_load_sd(nd->inv_cell + 2);
+            fcell = _mm_load_sd(c->fcell + 2), top = _mm_load_sd(c->top + 2);
+        }
+        /* GC_MIN(a, b) is _mm_min_pd(a, b), GC_MAX(a, b) _mm_max_pd(a, b) */
+        const __m128d a = _mm_min_pd(a0, _mm_min_pd(a1, a2)), z = _mm_max_pd(a0, _mm_max_pd(a1, a2));
+        const __m128d w =
+            _mm_add_pd(fcell, _mm_mul_pd(ulps, _mm_max_pd(_mm_andnot_pd(sign, a), _mm_andnot_pd(sign, z))));
+        const __m128d aw = _mm_sub_pd(a, w), zw = _mm_add_pd(z, w);
+        /* !(f > 0) ? 0 : (f > top ? top : f) */
+        const __m128d fa = _mm_min_pd(_mm_max_pd(_mm_mul_pd(_mm_sub_pd(aw, nlo), inv), zero), top);
+        const __m128d fb = _mm_min_pd(_mm_max_pd(_mm_mul_pd(_mm_sub_pd(zw, nlo), inv), zero), top);
+        lo[h] = a, hi[h] = z;
+        q0[h] = _mm_cvttpd_epi32(fa);
+        q1[h] = _mm_cvttpd_epi32(fb);
+        /* the two int32 lanes of q0 != q1, widened to the two double lanes */
+        const __m128d ne = _mm_castsi128_pd(
+            _mm_shuffle_epi32(_mm_xor_si128(_mm_cmpeq_epi32(q0[h], q1[h]), _mm_set1_epi32(-1)), 0x50));
+        const __m128d out = _mm_or_pd(_mm_cmplt_pd(aw, nlo), _mm_cmpgt_pd(zw, nhi));
+        mask |= (_mm_movemask_pd(_mm_or_pd(ne, out)) & (h == 0 ? 3 : 1)) << (2 * h);
+    }
+    _mm_storeu_pd(bmin, lo[0]);
+    _mm_store_sd(bmin + 2, lo[1]);
+    _mm_storeu_pd(bmax, hi[0]);
+    _mm_store_sd(bmax + 2, hi[1]);
+    r0[0] = _mm_cvtsi128_si32(q0[0]);
+    r0[1] = _mm_cvtsi128_si32(_mm_shuffle_epi32(q0[0], 1));
+    r0[2] = _mm_cvtsi128_si32(q0[1]);
+    r1[0] = _mm_cvtsi128_si32(q1[0]);
+    r1[1] = _mm_cvtsi128_si32(_mm_shuffle_epi32(q1[0], 1));
+    r1[2] = _mm_cvtsi128_si32(q1[1]);
+    *spread_out = (mask & 1) + (mask >> 1 & 1) + (mask >> 2 & 1);
+    *slab_out = mask == 7 ? 0 : last_clear[mask];
+#else
+    int spread = 0, slab = 0;
+    for (int i = 0; i < 3; ++i) {
+        double a = GC_MIN(v0[i], GC_MIN(v1[i], v2[i]));
+        double z = GC_MAX(v0[i], GC_MAX(v1[i], v2[i]));
+        bmin[i] = a;
+        bmax[i] = z;
+        double w = c->fcell[i] + GC_CELL_WIDEN_ULPS * DBL_EPSILON * GC_MAX(fabs(a), fabs(z));
+        axis_range(nd, i, a - w, z + w, &r0[i], &r1[i]);
+        const int spreads = (r0[i] != r1[i]) | (a - w < nd->lo[i]) | (z + w > nd->hi[i]);
+        spread += spreads;
+        slab = spreads ? slab : i;
+    }
+    *spread_out = spread;
+    *slab_out = slab;
+#endif
+}
+
 /* One part of collect_pairs: the pairs of a contiguous run of the node's triangles. */
 typedef struct {
     builder *b;
@@ -378,31 +478,17 @@ static void collect_part(void *arg)
     const int64_t nx = nd->n[0], nxy = (int64_t)nd->n[0] * nd->n[1];
     const double *vert = b->mesh->vertices;
     const int64_t *faces = b->mesh->faces;
+    range_consts cr;
+    range_consts_init(&cr, nd);
     for (int64_t k = 0; k < j->n_prims; ++k) {
         const uint32_t prim = j->prims[k];
         prefetch_face(vert, faces, j->prims, k, j->n_prims);
         const int64_t *fv = faces + 3 * (int64_t)prim;
-        gc_tri tri;
-        memcpy(tri.v0, vert + 3 * fv[0], sizeof tri.v0);
-        memcpy(tri.v1, vert + 3 * fv[1], sizeof tri.v1);
-        memcpy(tri.v2, vert + 3 * fv[2], sizeof tri.v2);
-        const gc_tri *t = &tri;
+        const double *v0 = vert + 3 * fv[0], *v1 = vert + 3 * fv[1], *v2 = vert + 3 * fv[2];
         int32_t r0[3], r1[3];
         double bmin[3], bmax[3];
-        int spread = 0; /* axes along which the bounds span several cells or leave the node */
-        int slab = 0;   /* an axis along which they do not */
-        for (int i = 0; i < 3; ++i) {
-            double a = GC_MIN(t->v0[i], GC_MIN(t->v1[i], t->v2[i]));
-            double c = GC_MAX(t->v0[i], GC_MAX(t->v1[i], t->v2[i]));
-            bmin[i] = a;
-            bmax[i] = c;
-            double w = GC_CELL_WIDEN_FRACTION * nd->cell[i] +
-                       GC_CELL_WIDEN_ULPS * DBL_EPSILON * GC_MAX(fabs(a), fabs(c));
-            axis_range(nd, i, a - w, c + w, &r0[i], &r1[i]);
-            const int spreads = (r0[i] != r1[i]) | (a - w < nd->lo[i]) | (c + w > nd->hi[i]);
-            spread += spreads;
-            slab = spreads ? slab : i;
-        }
+        int spread, slab;
+        cell_range(&cr, v0, v1, v2, bmin, bmax, r0, r1, &spread, &slab);
         const int64_t span = (int64_t)(r1[0] - r0[0] + 1) * (r1[1] - r0[1] + 1) * (r1[2] - r0[2] + 1);
         /* Bounds in one cell, or in one row of cells whose cross-section holds
          * them: the triangle lies inside the (widened) row, and being connected it
@@ -436,9 +522,9 @@ static void collect_part(void *arg)
         gc_tri_box_prep prep;
         gc_tri_slab_prep sp;
         if (in_slab) {
-            gc_tri_slab_prepare(&sp, t->v0, t->v1, t->v2, slab);
+            gc_tri_slab_prepare(&sp, v0, v1, v2, slab);
         } else {
-            gc_tri_box_prepare(&prep, t->v0, t->v1, t->v2);
+            gc_tri_box_prepare(&prep, v0, v1, v2);
         }
         for (int32_t z = r0[2]; z <= r1[2]; ++z) {
             const double lo2 = clo[2][z], hi2 = chi[2][z], m2 = cmid[2][z], h2 = chalf[2][z];
