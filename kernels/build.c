@@ -648,6 +648,7 @@ typedef struct {
     int parts;
     uint32_t *off;           /* ncell + 1 counters */
     uint32_t *sorted;
+    gc_cell *cells;          /* a uniform grid's cells, written by the scatter; or NULL */
     uint32_t c0, c1;
 } sort_job;
 
@@ -672,12 +673,20 @@ static void sort_scatter_part(void *arg)
     sort_job *s = arg;
     const uint32_t c0 = s->c0, span = s->c1 - s->c0;
     uint32_t *off = s->off, *sorted = s->sorted;
+    uint32_t begin = off[c0]; /* the part's first cell's first slot */
     for (int k = 0; k < s->parts; ++k) { /* the parts in order: the pairs in the order of prims */
         const pair *pairs = s->jobs[k].pairs;
         for (int64_t q = 0; q < s->jobs[k].n; ++q) {
             if (pairs[q].cell - c0 < span) {
                 sorted[off[pairs[q].cell]++] = pairs[q].prim;
             }
+        }
+    }
+    if (s->cells) { /* each offset now the end of its cell */
+        for (uint32_t c = c0; c < s->c1; ++c) {
+            s->cells[c].begin = begin;
+            s->cells[c].count = off[c] - begin;
+            begin = off[c];
         }
     }
 }
@@ -802,6 +811,8 @@ static gc_status build_node(builder *b, const uint32_t *prims, int64_t n_prims, 
         free_pair_parts(b, jobs, parts);
         return st;
     }
+    /* the top level of a uniform grid: the sorted references are the grid's */
+    const int uniform_top = depth + 1 >= b->p->levels && !g->refs;
     {
         sort_job sj[GC_MAX_THREADS];
         const int sparts = parts_for(b, ncell < n_pairs ? ncell : n_pairs);
@@ -810,6 +821,7 @@ static gc_status build_node(builder *b, const uint32_t *prims, int64_t n_prims, 
             sj[t].parts = parts;
             sj[t].off = off;
             sj[t].sorted = sorted;
+            sj[t].cells = uniform_top ? g->cells + first : NULL;
             sj[t].c0 = (uint32_t)part_start(ncell, t, sparts, 1);
             sj[t].c1 = (uint32_t)part_start(ncell, t + 1, sparts, 1);
         }
@@ -819,22 +831,17 @@ static gc_status build_node(builder *b, const uint32_t *prims, int64_t n_prims, 
             off[c + 1] += off[c];
         }
         run_parts(sort_scatter_part, sj, sizeof *sj, sparts);
-        for (int64_t c = ncell; c > 0; --c) { /* the scatter advanced each offset to its end */
+        for (int64_t c = ncell; c > 0 && !uniform_top; --c) { /* the scatter advanced each offset to its end */
             off[c] = off[c - 1];
         }
         off[0] = 0;
     }
     free_pair_parts(b, jobs, parts);
 
-    if (depth + 1 >= b->p->levels && !g->refs) {
-        /* the top level of a uniform grid: the sorted references are the grid's */
+    if (uniform_top) { /* the scatter wrote the cells */
         g->refs = sorted;
         b->scratch -= sorted_bytes;
         b->cap_refs = (int64_t)(sorted_bytes / sizeof(uint32_t));
-        for (int64_t c = 0; c < ncell; ++c) {
-            g->cells[first + c].begin = off[c];
-            g->cells[first + c].count = off[c + 1] - off[c];
-        }
         g->n_refs = n_pairs;
         scratch_free(b, off, off_bytes);
         *node_out = node_index;
