@@ -743,20 +743,22 @@ static int cmp_i32(const void *a, const void *b)
     return (x > y) - (x < y);
 }
 
-/* The face order the build reads: a mesh whose consecutive faces are neighbours
- * (the UV sphere, written ring by ring) keeps it, so each cell lists its faces by
- * index; the same faces shuffled are put in Morton order.  Either way each cell
- * holds the same faces, and first hits agree with brute force. */
-static void test_face_order(void)
+/* The face order the build reads, on a UV sphere of the given size written ring by
+ * ring (consecutive faces are neighbours) and on the same faces shuffled: the
+ * sphere keeps its order, so each cell lists its faces by index; the shuffled faces
+ * are put in Morton order when `sorted` (a mesh past SORT_MIN_BYTES) and keep
+ * theirs otherwise.  Either way each cell holds the same faces, and first hits
+ * agree with brute force on n_rays rays. */
+static void check_face_order(int rings, int segs, int sorted, int64_t n_rays, uint64_t seed)
 {
-    mesh_buf m = uv_sphere(120, 180, 0.5, 0.05, 41);
+    mesh_buf m = uv_sphere(rings, segs, 0.5, 0.05, seed);
     mesh_buf s = m; /* the faces shuffled: s.f[t] = m.f[perm[t]] */
     s.f = malloc((size_t)m.nf * 3 * sizeof(int64_t));
     int32_t *perm = malloc((size_t)m.nf * sizeof(int32_t));
     for (int64_t t = 0; t < m.nf; ++t) {
         perm[t] = (int32_t)t;
     }
-    rng_seed(42);
+    rng_seed(seed + 1);
     for (int64_t t = m.nf - 1; t > 0; --t) {
         const int64_t u = (int64_t)(rng_uniform() * (double)(t + 1));
         const int32_t x = perm[t];
@@ -767,11 +769,12 @@ static void test_face_order(void)
     }
     gc_build_params p = gc_build_params_default();
     p.resolution[0] = 23, p.resolution[1] = 19, p.resolution[2] = 21;
+    p.threads = 2;
     gc_mesh mm = as_mesh(&m), ms = as_mesh(&s);
     gc_grid *gm = NULL, *gs = NULL;
     char err[GC_ERROR_LEN];
-    CHECK(gc_grid_build(&mm, &p, &gm, err) == GC_OK, "sphere: %s", err);
-    CHECK(gc_grid_build(&ms, &p, &gs, err) == GC_OK, "shuffled sphere: %s", err);
+    CHECK(gc_grid_build(&mm, &p, &gm, err) == GC_OK, "sphere %dx%d: %s", rings, segs, err);
+    CHECK(gc_grid_build(&ms, &p, &gs, err) == GC_OK, "shuffled sphere %dx%d: %s", rings, segs, err);
     if (gm && gs) {
         int32_t *a = malloc((size_t)m.nf * sizeof(int32_t)), *b = malloc((size_t)m.nf * sizeof(int32_t));
         int64_t unordered_m = 0, unordered_s = 0, differ = 0, refs = 0;
@@ -781,8 +784,8 @@ static void test_face_order(void)
             for (uint32_t k = 1; k < na; ++k) {
                 out_m |= a[k] <= a[k - 1];
             }
-            for (uint32_t k = 0; k < nb; ++k) {
-                out_s |= k > 0 && b[k] <= b[k - 1];
+            for (uint32_t k = 1; k < nb; ++k) {
+                out_s |= b[k] <= b[k - 1];
             }
             for (uint32_t k = 0; k < nb; ++k) {
                 b[k] = perm[b[k]]; /* the shuffled mesh's face b[k] is the sphere's perm[b[k]] */
@@ -794,23 +797,34 @@ static void test_face_order(void)
             differ += na != nb || (na > 0 && memcmp(a, b, na * sizeof *a) != 0);
             refs += na;
         }
-        CHECK(refs > m.nf && differ == 0, "shuffling the faces changed %lld cells' faces (%lld references)",
+        CHECK(refs > m.nf && differ == 0,
+              "sphere %dx%d: shuffling the faces changed %lld cells' faces (%lld references)", rings, segs,
               (long long)differ, (long long)refs);
-        CHECK(unordered_m == 0, "the sphere's order was not kept: %lld cells list faces out of order",
-              (long long)unordered_m);
-        CHECK(unordered_s > 0, "the shuffled faces were not reordered: every cell lists them by index");
+        CHECK(unordered_m == 0, "sphere %dx%d: its order was not kept: %lld cells list faces out of order",
+              rings, segs, (long long)unordered_m);
+        CHECK(sorted ? unordered_s > 0 : unordered_s == 0,
+              sorted ? "sphere %dx%d: the shuffled faces were not reordered (%lld cells out of order)"
+                     : "sphere %dx%d: the shuffled faces were reordered (%lld cells out of order)",
+              rings, segs, (long long)unordered_s);
         free(a), free(b);
     }
     gc_grid_free(gm), gc_grid_free(gs);
-    const int64_t n = 2000;
-    double *o = malloc((size_t)n * 3 * sizeof(double)), *d = malloc((size_t)n * 3 * sizeof(double));
+    double *o = malloc((size_t)n_rays * 3 * sizeof(double)), *d = malloc((size_t)n_rays * 3 * sizeof(double));
     double lo[3], hi[3];
     CHECK(gc_mesh_box(&mm, lo, hi, err) == GC_OK, "box: %s", err);
-    random_rays(n, lo, hi, 43, o, d);
-    compare_with_brute(&m, &p, n, o, d, "sphere in its own face order");
-    compare_with_brute(&s, &p, n, o, d, "sphere with shuffled faces");
+    random_rays(n_rays, lo, hi, seed + 2, o, d);
+    compare_with_brute(&m, &p, n_rays, o, d, "sphere in its own face order");
+    compare_with_brute(&s, &p, n_rays, o, d, "sphere with shuffled faces");
     free(o), free(d), free(perm), free(s.f);
     mesh_free(&m);
+}
+
+/* 42,960 faces (1.5 MB with the vertices): no sort; 502,800 (18 MB): the shuffled
+ * faces sorted. */
+static void test_face_order(void)
+{
+    check_face_order(120, 180, 0, 2000, 41);
+    check_face_order(420, 600, 1, 100, 44);
 }
 
 /* Vertices no face uses are ignored, even a NaN or a far one (the build's
