@@ -815,6 +815,13 @@ static void check_face_order(int rings, int segs, int sorted, int64_t n_rays, ui
     random_rays(n_rays, lo, hi, seed + 2, o, d);
     compare_with_brute(&m, &p, n_rays, o, d, "sphere in its own face order");
     compare_with_brute(&s, &p, n_rays, o, d, "sphere with shuffled faces");
+    /* a bad index in the first sampled pair (faces 0 and 1) is refused as the face pass refuses it */
+    const int64_t keep = s.f[4];
+    s.f[4] = s.nv + 5;
+    gc_grid *bad = NULL;
+    CHECK(gc_grid_build(&ms, &p, &bad, err) == GC_ERR_ARGUMENT && bad == NULL && strstr(err, "face 1 refers to vertex"),
+          "sphere %dx%d: a bad index in a sampled face: %s", rings, segs, err);
+    s.f[4] = keep;
     free(o), free(d), free(perm), free(s.f);
     mesh_free(&m);
 }
