@@ -432,7 +432,7 @@ GC_INLINE void cell_range(const range_consts *c, const double *v0, const double 
     r1[1] = _mm_cvtsi128_si32(_mm_shuffle_epi32(q1[0], 1));
     r1[2] = _mm_cvtsi128_si32(q1[1]);
     *spread_out = (mask & 1) + (mask >> 1 & 1) + (mask >> 2 & 1);
-    *slab_out = mask == 7 ? 0 : last_clear[mask];
+    *slab_out = last_clear[mask];
 #else
     int spread = 0, slab = 0;
     for (int i = 0; i < 3; ++i) {
@@ -505,8 +505,8 @@ static void collect_part(void *arg)
             for (int32_t z = r0[2]; z <= r1[2]; ++z) {
                 for (int32_t y = r0[1]; y <= r1[1]; ++y) {
                     for (int32_t x = r0[0]; x <= r1[0]; ++x) {
-                        if (row && ((bmin[0] > chi[0][x]) | (bmax[0] < clo[0][x]) | (bmin[1] > chi[1][y]) |
-                                    (bmax[1] < clo[1][y]) | (bmin[2] > chi[2][z]) | (bmax[2] < clo[2][z]))) {
+                        if (row && gc_bounds_apart(bmin, bmax, clo[0][x], clo[1][y], clo[2][z], chi[0][x],
+                                                   chi[1][y], chi[2][z])) {
                             continue;
                         }
                         pairs[n].cell = (uint32_t)(x + nx * y + nxy * z);

@@ -815,7 +815,8 @@ static void check_face_order(int rings, int segs, int sorted, int64_t n_rays, ui
     random_rays(n_rays, lo, hi, seed + 2, o, d);
     compare_with_brute(&m, &p, n_rays, o, d, "sphere in its own face order");
     compare_with_brute(&s, &p, n_rays, o, d, "sphere with shuffled faces");
-    /* a bad index in the first sampled pair (faces 0 and 1) is refused as the face pass refuses it */
+    /* a bad index in faces 0 and 1 (the first pair sampled, where the mesh is sampled) is refused as
+     * the face pass refuses it */
     const int64_t keep = s.f[4];
     s.f[4] = s.nv + 5;
     gc_grid *bad = NULL;
