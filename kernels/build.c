@@ -750,7 +750,7 @@ static gc_status build_node(builder *b, const uint32_t *prims, int64_t n_prims, 
         if (st != GC_OK) {
             return st;
         }
-        g->cells = gc_big_alloc((size_t)ncell * sizeof(gc_cell), &g->cells_mapped);
+        g->cells = gc_big_alloc_raw((size_t)ncell * sizeof(gc_cell), &g->cells_mapped, 0); /* every cell written below */
         if (!g->cells) {
             gc_set_error(b->err, "out of memory allocating %lld cells", (long long)ncell);
             return GC_ERR_NO_MEMORY;
@@ -1428,10 +1428,13 @@ static gc_status build_grid(builder *b, const gc_mesh *mesh, gc_grid **out)
     st = check_memory(b, GC_PACK_BYTES(g->n_refs) - (uint64_t)g->n_refs * sizeof(gc_tri),
                       "the per-reference triangles");
     if (st == GC_OK) {
-        g->ref_tris = gc_big_alloc((size_t)GC_PACK_BYTES(g->n_refs > 0 ? g->n_refs : 1), &g->ref_tris_mapped);
+        const size_t pack_bytes = (size_t)GC_PACK_BYTES(g->n_refs > 0 ? g->n_refs : 1);
+        g->ref_tris = gc_big_alloc_raw(pack_bytes, &g->ref_tris_mapped, 0);
         if (!g->ref_tris) {
             gc_set_error(err, "out of memory copying %lld triangle references", (long long)g->n_refs);
             st = GC_ERR_NO_MEMORY;
+        } else { /* the fill writes every reference's lane: the last pack's spare lanes read as zero */
+            memset(&g->ref_tris[pack_bytes / sizeof(gc_pack) - 1], 0, sizeof(gc_pack));
         }
     }
     if (st != GC_OK) {

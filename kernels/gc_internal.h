@@ -164,11 +164,20 @@ gc_status gc_check_rays(int64_t n, const double *origins, const double *directio
  * mapped, or 0 for an ordinary calloc'd block.  gc_big_free releases either.
  * gc_big_move: the malloc'd block p of `bytes` moved into a mapping (p is
  * freed; *mapped its length), or p itself (*mapped = 0) when it is smaller or
- * the mapping fails. */
+ * the mapping fails.  A freed mapping of at most GC_BIG_KEEP_BYTES is kept for
+ * a later gc_big_alloc of a half to all of its length (at most GC_BIG_KEEP
+ * kept, the oldest unmapped first); gc_big_kept reports how many and how many
+ * bytes, gc_release_memory (gridcal.h) unmaps them.  gc_big_alloc_raw with zero
+ * = 0: the same, but a kept mapping comes back as its last user left it (for an
+ * array its caller writes in full). */
 #define GC_HUGE_PAGE_BYTES ((size_t)2 << 20)
+#define GC_BIG_KEEP 4
+#define GC_BIG_KEEP_BYTES ((size_t)256 << 20)
 void *gc_big_alloc(size_t bytes, size_t *mapped);
+void *gc_big_alloc_raw(size_t bytes, size_t *mapped, int zero);
 void gc_big_free(void *p, size_t mapped);
 void *gc_big_move(void *p, size_t bytes, size_t *mapped);
+void gc_big_kept(int *count, size_t *bytes);
 
 void gc_set_error(char *err, const char *fmt, ...)
 #if defined(__GNUC__)

@@ -148,6 +148,10 @@ void gc_widen_box(double lo[3], double hi[3]);
 gc_status gc_grid_build(const gc_mesh *mesh, const gc_build_params *params,
                         gc_grid **out, char *err);
 void gc_grid_free(gc_grid *grid);
+/* gc_grid_free keeps a freed grid's largest arrays (up to 256 MiB in all) for the
+ * next build to reuse, sparing it the kernel's zeroing of fresh pages; this gives
+ * them back to the OS.  Safe to call at any time, from any thread. */
+void gc_release_memory(void);
 void gc_grid_get_info(const gc_grid *grid, gc_grid_info *info);
 
 /* Per-cell reference counts of the top level, (nx*ny*nz) values; a cell with a

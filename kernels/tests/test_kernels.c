@@ -989,6 +989,144 @@ static void test_big_arrays(void)
     mesh_free(&m);
 }
 
+/* Freed mappings kept for reuse (bigmem.c): a kept mapping serves a later request
+ * of half to all of its length, zeroed unless asked raw; the oldest go past
+ * GC_BIG_KEEP mappings or GC_BIG_KEEP_BYTES; one over the limit is not kept;
+ * gc_release_memory empties the list.  A grid built into another grid's kept
+ * packs has its last pack's spare lanes zero and agrees with brute force. */
+static void test_kept_mappings(void)
+{
+#if defined(__linux__)
+    const size_t mib = (size_t)1 << 20;
+    int count = -1;
+    size_t bytes = 1;
+    gc_release_memory();
+    gc_big_kept(&count, &bytes);
+    CHECK(count == 0 && bytes == 0, "after gc_release_memory: %d kept, %zu bytes", count, bytes);
+    size_t m1 = 0, m2 = 0;
+    unsigned char *p = gc_big_alloc(3 * mib, &m1);
+    if (!p || !m1) {
+        CHECK(0, "gc_big_alloc(3 MiB) gave no mapping (%zu)", m1);
+        gc_big_free(p, m1);
+        return;
+    }
+    memset(p, 0xab, m1);
+    gc_big_free(p, m1);
+    gc_big_kept(&count, &bytes);
+    CHECK(count == 1 && bytes == m1, "a freed 3 MiB mapping: %d kept, %zu bytes (want 1, %zu)", count, bytes, m1);
+    unsigned char *q = gc_big_alloc(3 * mib + 5, &m2);
+    size_t nonzero = 0;
+    for (size_t k = 0; q && k < 3 * mib + 5; ++k) {
+        nonzero += q[k] != 0;
+    }
+    CHECK(q == p && m2 == m1, "a request of the same length did not take the kept mapping");
+    CHECK(nonzero == 0, "a kept mapping reused: %zu bytes not zero", nonzero);
+    gc_big_kept(&count, &bytes);
+    CHECK(count == 0 && bytes == 0, "a kept mapping taken: %d still kept, %zu bytes", count, bytes);
+    memset(q, 0xcd, m2);
+    gc_big_free(q, m2);
+    q = gc_big_alloc_raw(2 * mib + 1, &m2, 0); /* 4 MiB: the kept one, as it was left */
+    CHECK(q == p && m2 == m1 && q[0] == 0xcd && q[m2 - 1] == 0xcd, "a raw request of 4 MiB: %p (kept %p)",
+          (void *)q, (void *)p);
+    gc_big_free(q, m2);
+    q = gc_big_alloc(1 * mib + mib, &m2); /* 2 MiB: half the kept 4 MiB, still taken */
+    CHECK(q == p, "a request of half the kept length did not take it");
+    gc_big_free(q, m2);
+    unsigned char *big = gc_big_alloc(16 * mib, &m2); /* the 4 MiB kept one too short */
+    CHECK(big != p, "a 16 MiB request took a kept 4 MiB mapping");
+    gc_big_free(big, m2);
+    q = gc_big_alloc(2 * mib, &m2); /* the kept 4 MiB one, not the 16 MiB one (8 times over) */
+    CHECK(q == p, "a 2 MiB request did not take the smallest kept mapping long enough");
+    gc_big_free(q, m2);
+    gc_release_memory();
+    /* at most GC_BIG_KEEP, the oldest dropped */
+    unsigned char *five[GC_BIG_KEEP + 2];
+    size_t five_m[GC_BIG_KEEP + 2];
+    for (int k = 0; k < GC_BIG_KEEP + 2; ++k) {
+        five[k] = gc_big_alloc(2 * mib, &five_m[k]);
+    }
+    for (int k = 0; k < GC_BIG_KEEP + 2; ++k) {
+        gc_big_free(five[k], five_m[k]);
+    }
+    gc_big_kept(&count, &bytes);
+    CHECK(count == GC_BIG_KEEP && bytes == (size_t)GC_BIG_KEEP * 2 * mib, "%d freed: %d kept, %zu bytes",
+          GC_BIG_KEEP + 2, count, bytes);
+    /* at most GC_BIG_KEEP_BYTES in all (never touched: only address space), and one larger never kept */
+    const size_t part = GC_BIG_KEEP_BYTES / 2 - mib;
+    unsigned char *h1 = gc_big_alloc(part, &m1), *h2 = gc_big_alloc(part, &m2);
+    size_t m3 = 0;
+    unsigned char *h3 = gc_big_alloc(GC_BIG_KEEP_BYTES + 1, &m3);
+    CHECK(h1 && h2 && h3, "address space for %zu bytes", 2 * part + GC_BIG_KEEP_BYTES);
+    gc_big_free(h1, m1);
+    gc_big_free(h2, m2);
+    gc_big_kept(&count, &bytes);
+    CHECK(bytes <= GC_BIG_KEEP_BYTES && count >= 2, "two of %zu MiB freed: %d kept, %zu bytes", part / mib, count,
+          bytes);
+    gc_big_free(h3, m3);
+    size_t bytes2 = 0;
+    gc_big_kept(&count, &bytes2);
+    CHECK(bytes2 == bytes, "a mapping over GC_BIG_KEEP_BYTES was kept (%zu -> %zu bytes)", bytes, bytes2);
+    gc_release_memory();
+    gc_big_kept(&count, &bytes);
+    CHECK(count == 0 && bytes == 0, "gc_release_memory left %d mappings, %zu bytes", count, bytes);
+
+    /* a grid built into another grid's packs: long triangles in 64^3 cells (over 2 MiB of
+     * packs), then other triangles, a reference count that leaves spare lanes */
+    mesh_buf a = random_soup(150, 0.6, 3);
+    char err[GC_ERROR_LEN] = "";
+    gc_mesh mesh_a = as_mesh(&a);
+    gc_build_params p64 = gc_build_params_default();
+    p64.resolution[0] = p64.resolution[1] = p64.resolution[2] = 64;
+    gc_grid *ga = NULL;
+    CHECK(gc_grid_build(&mesh_a, &p64, &ga, err) == GC_OK, "grid to be freed: %s", err);
+    if (!ga) {
+        mesh_free(&a);
+        return;
+    }
+    for (int64_t k = 0; k < (int64_t)(GC_PACK_BYTES(ga->n_refs) / sizeof(gc_pack)) * GC_LANES; ++k) {
+        ga->ref_tris[k / GC_LANES].c[0][k % GC_LANES] = 0.5; /* stale data for the spare lanes to lose */
+        ga->ref_tris[k / GC_LANES].id[k % GC_LANES] = 7;
+    }
+    const gc_pack *old_packs = ga->ref_tris;
+    gc_grid_free(ga);
+    int spare_checked = 0;
+    for (int32_t r = 64; r >= 56 && !spare_checked; --r) {
+        mesh_buf b = random_soup(149, 0.6, 5);
+        gc_mesh mesh_b = as_mesh(&b);
+        gc_build_params pb = p64;
+        pb.resolution[0] = pb.resolution[1] = pb.resolution[2] = r;
+        gc_grid *gb = NULL;
+        CHECK(gc_grid_build(&mesh_b, &pb, &gb, err) == GC_OK, "grid in kept memory: %s", err);
+        if (gb && gb->ref_tris == old_packs && gb->n_refs % GC_LANES != 0) {
+            const gc_pack *last = &gb->ref_tris[gb->n_refs / GC_LANES];
+            size_t stale = 0;
+            for (int lane = (int)(gb->n_refs % GC_LANES); lane < GC_LANES; ++lane) {
+                for (int c = 0; c < 9; ++c) {
+                    stale += last->c[c][lane] != 0.0;
+                }
+                stale += last->id[lane] != 0;
+            }
+            CHECK(stale == 0, "%zu values of the last pack's spare lanes kept from the grid before", stale);
+            spare_checked = 1;
+            const int64_t n = 2000;
+            double *o = malloc((size_t)n * 3 * sizeof(double)), *d = malloc((size_t)n * 3 * sizeof(double));
+            double lo[3], hi[3];
+            CHECK(gc_mesh_box(&mesh_b, lo, hi, err) == GC_OK, "box: %s", err);
+            random_rays(n, lo, hi, 105, o, d);
+            gc_grid_free(gb);
+            gb = NULL;
+            compare_with_brute(&b, &pb, n, o, d, "grid in a kept mapping");
+            free(o), free(d);
+        }
+        gc_grid_free(gb);
+        mesh_free(&b);
+    }
+    CHECK(spare_checked, "no grid of 56^3-64^3 cells took the kept packs with spare lanes");
+    mesh_free(&a);
+    gc_release_memory();
+#endif
+}
+
 /* Explicit resolutions at depths 1 and 2: the grid holds exactly the cells the two
  * tables give, agrees with brute force, and bad tables are refused. */
 static void test_explicit_depth2_resolutions(void)
@@ -1093,6 +1231,7 @@ int main(void)
     test_visits_and_positions();
     test_explicit_depth2_resolutions();
     test_big_arrays();
+    test_kept_mappings();
     printf("%d passed, %d failed\n", checks - failures, failures);
     return failures ? 1 : 0;
 }
