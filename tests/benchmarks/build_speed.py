@@ -4,8 +4,9 @@
 
 For each scene, the recommended uniform grid (analytic plan, r = 1, as
 ``calibrate bench --scale`` plans it) is built ``1 + K`` times per thread count
-in a fresh order: the first build of each (the first time the process touches
-that much memory, as a user's one build does) and the median of the others are
+in a fresh order: the first build of each (for the first scene, the first time
+the process touches that much memory, as a user's one build does; a later scene's
+may reuse the mappings gc_grid_free keeps) and the median of the others are
 printed, as wall time and M references/s.  The meshes default to the largest
 of ../shared/meshes when that folder is beside the checkout; the built-in
 sphere is built at each ``--triangles`` count twice: with its lattice vertex
