@@ -126,6 +126,8 @@ void *gc_big_alloc_raw(size_t bytes, size_t *mapped, int zero)
             }
         }
     }
+#else
+    (void)zero;
 #endif
     return calloc(bytes ? bytes : 1, 1);
 }
