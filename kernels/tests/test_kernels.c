@@ -1029,7 +1029,7 @@ static void test_kept_mappings(void)
     CHECK(q == p && m2 == m1 && q[0] == 0xcd && q[m2 - 1] == 0xcd, "a raw request of 4 MiB: %p (kept %p)",
           (void *)q, (void *)p);
     gc_big_free(q, m2);
-    q = gc_big_alloc(1 * mib + mib, &m2); /* 2 MiB: half the kept 4 MiB, still taken */
+    q = gc_big_alloc(2 * mib, &m2); /* half the kept 4 MiB, still taken */
     CHECK(q == p, "a request of half the kept length did not take it");
     gc_big_free(q, m2);
     unsigned char *big = gc_big_alloc(16 * mib, &m2); /* the 4 MiB kept one too short */
@@ -1039,18 +1039,31 @@ static void test_kept_mappings(void)
     CHECK(q == p, "a 2 MiB request did not take the smallest kept mapping long enough");
     gc_big_free(q, m2);
     gc_release_memory();
-    /* at most GC_BIG_KEEP, the oldest dropped */
-    unsigned char *five[GC_BIG_KEEP + 2];
-    size_t five_m[GC_BIG_KEEP + 2];
+    /* at most GC_BIG_KEEP, the oldest dropped: the kept ones are the last freed */
+    unsigned char *freed[GC_BIG_KEEP + 2];
+    size_t freed_m[GC_BIG_KEEP + 2];
     for (int k = 0; k < GC_BIG_KEEP + 2; ++k) {
-        five[k] = gc_big_alloc(2 * mib, &five_m[k]);
+        freed[k] = gc_big_alloc(2 * mib, &freed_m[k]);
     }
     for (int k = 0; k < GC_BIG_KEEP + 2; ++k) {
-        gc_big_free(five[k], five_m[k]);
+        gc_big_free(freed[k], freed_m[k]);
     }
     gc_big_kept(&count, &bytes);
     CHECK(count == GC_BIG_KEEP && bytes == (size_t)GC_BIG_KEEP * 2 * mib, "%d freed: %d kept, %zu bytes",
           GC_BIG_KEEP + 2, count, bytes);
+    unsigned char *taken[GC_BIG_KEEP];
+    size_t taken_m[GC_BIG_KEEP];
+    int newest = 0;
+    for (int k = 0; k < GC_BIG_KEEP; ++k) {
+        taken[k] = gc_big_alloc_raw(2 * mib, &taken_m[k], 0);
+        for (int j = 2; j < GC_BIG_KEEP + 2; ++j) {
+            newest += taken[k] == freed[j];
+        }
+    }
+    CHECK(newest == GC_BIG_KEEP, "%d of the %d kept mappings are the last freed", newest, GC_BIG_KEEP);
+    for (int k = 0; k < GC_BIG_KEEP; ++k) {
+        gc_big_free(taken[k], taken_m[k]);
+    }
     /* at most GC_BIG_KEEP_BYTES in all (never touched: only address space), and one larger never kept */
     const size_t part = GC_BIG_KEEP_BYTES / 2 - mib;
     unsigned char *h1 = gc_big_alloc(part, &m1), *h2 = gc_big_alloc(part, &m2);
