@@ -139,25 +139,24 @@ void gc_big_free(void *p, size_t mapped)
     }
 #if GC_BIG_MAPPED
     if (mapped) {
-        /* kept, unless it alone is over the limit; the oldest kept go to make room */
-        void *out[GC_BIG_KEEP + 1];
-        size_t out_len[GC_BIG_KEEP + 1];
-        int n_out = 0;
-        if (mapped > GC_BIG_KEEP_BYTES) {
-            out[n_out] = p;
-            out_len[n_out++] = mapped;
-        } else {
-            KEPT_LOCK();
-            while (n_kept > 0 && (n_kept == GC_BIG_KEEP || kept_bytes + mapped > GC_BIG_KEEP_BYTES)) {
-                out[n_out] = kept[0].p;
-                out_len[n_out++] = kept[0].len;
-                kept_drop(0);
-            }
-            kept[n_kept].p = p;
-            kept[n_kept++].len = mapped;
-            kept_bytes += mapped;
-            KEPT_UNLOCK();
+        if (mapped > GC_BIG_KEEP_BYTES) { /* over the limit alone: never kept */
+            (void)munmap(p, mapped);
+            return;
         }
+        /* kept; the oldest kept go to make room, unmapped outside the lock */
+        void *out[GC_BIG_KEEP];
+        size_t out_len[GC_BIG_KEEP];
+        int n_out = 0;
+        KEPT_LOCK();
+        while (n_kept > 0 && (n_kept == GC_BIG_KEEP || kept_bytes + mapped > GC_BIG_KEEP_BYTES)) {
+            out[n_out] = kept[0].p;
+            out_len[n_out++] = kept[0].len;
+            kept_drop(0);
+        }
+        kept[n_kept].p = p;
+        kept[n_kept++].len = mapped;
+        kept_bytes += mapped;
+        KEPT_UNLOCK();
         for (int k = 0; k < n_out; ++k) {
             (void)munmap(out[k], out_len[k]);
         }
