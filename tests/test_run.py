@@ -74,6 +74,37 @@ def test_in_context_grids_are_timed_on_copies(small_suite, monkeypatch):
         suites.context_configs("watertight", 0, scenes=("cylinder196",), copies=0)
 
 
+def test_padded_sphere_adds_empty_space_and_steps_apart_from_visits(monkeypatch):
+    """The suite's padded sphere is the built-in sphere, unchanged, in a box PADDED_SCALE
+    times its own about the same centre; the suite times it with uniform grids only, and
+    on the same rays' kind a grid of as many cells per triangle steps through more cells
+    per occupied cell entered than the bare sphere's (what separates T_step from T_visit)."""
+    from calibrate._grid import Grid, Scene, resolution_for_cells
+
+    bare, padded = Scene.builtin("sphere"), suites.context_scene(suites.PADDED_SCENE)
+    assert padded.name == suites.PADDED_SCENE and padded.n_triangles == bare.n_triangles + 2
+    np.testing.assert_array_equal(padded.vertices[: len(bare.vertices)], bare.vertices)
+    np.testing.assert_array_equal(padded.faces[: bare.n_triangles], bare.faces)
+    centre, half = 0.5 * (bare.box_lo + bare.box_hi), 0.5 * (bare.box_hi - bare.box_lo)
+    np.testing.assert_allclose(padded.box_lo, centre - suites.PADDED_SCALE * half, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(padded.box_hi, centre + suites.PADDED_SCALE * half, rtol=0, atol=1e-12)
+    ratios = {}
+    for scene in (bare, padded):
+        o, d = suites._rays(scene, "isotropic", 5)
+        o, d = o[:2048], d[:2048]
+        res = resolution_for_cells(scene.n_triangles, scene.box_hi - scene.box_lo)
+        steps, _, _, visits = Grid.uniform(scene, res).count(o, d, visits=True)
+        ratios[scene.name] = steps.sum() / visits.sum()
+    assert ratios[suites.PADDED_SCENE] > 1.5 * ratios["sphere"], ratios
+    monkeypatch.setattr(suites, "CONTEXT_CELLS_PER_TRIANGLE", (1 / 8, 1 / 4))
+    monkeypatch.setattr(suites, "CONTEXT_RAYS_PER_BATCH", 64)
+    configs = suites.context_configs("watertight", 0, scenes=(suites.PADDED_SCENE,), copies=1)
+    assert len(configs) == 2 * len(suites.CONTEXT_RAY_SETS)
+    assert all(c.scene == suites.PADDED_SCENE and c.subgrids == 0 and "L" not in c.resolution for c in configs)
+    with pytest.raises(ValueError, match="scale"):
+        suites.padded_sphere(0.5)
+
+
 def test_run_writes_a_valid_calibration(small_suite, tmp_path):
     out = tmp_path / "cal.json"
     result = run.run_calibration(out, budget_s=120, target_rel_width=None, seed=3)
