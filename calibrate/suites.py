@@ -67,14 +67,14 @@ SUBGRID_SIDES = (2, 4, 8, 16)
 #: grow together with its resolution, which leaves T_step on a ridge with T_visit and T_mem
 #: (r's posterior correlation with T_step -0.8 to -0.9): here steps grow apart from the
 #: other two.  On this project's 2-core host it took r's 95% half-width from 19-26% to
-#: 10-11% (isotropic rays) and from 7-9% to 5-6% (camera), with the cross-validated error
-#: at 2.3-2.5% as before (docs/calibration.md, "Empty space around the sphere").
+#: 10-15% (isotropic rays) and from 7-9% to 5-6% (camera), with the cross-validated error
+#: at 1.8-2.5% as before (docs/calibration.md, "Empty space around the sphere").
 PADDED_SCENE = "sphere-padded"
 PADDED_SCALE = 2.0
 #: Scenes of the in-context suite: built-in ones by name, and :data:`PADDED_SCENE`.
 CONTEXT_SCENES = ("sphere", "cylinder1996", "scattered-compact", "scattered-skinny", "cylinder196", PADDED_SCENE)
 #: In-context scenes timed with uniform grids only: the padded sphere's nested grids were
-#: priced 20-35% over their time (one T_sub for subgrids of a different kind), which
+#: priced 24-52% over their time (likely one T_sub for subgrids of another kind), which
 #: widened every configuration's misfit term.
 CONTEXT_UNIFORM_ONLY = (PADDED_SCENE,)
 #: Total cells as multiples of N for the in-context uniform grids (coarse to fine).  Dense
