@@ -14,8 +14,8 @@ Isolating suites (first estimates, reported beside the in-context fit):
 
 In-context suite: real traversals of built-in scenes at resolutions from
 coarse to fine (uniform, and nested of depth 2 and 3) under isotropic and
-camera rays, and of the built-in sphere in a box twice its size (uniform
-grids only; :func:`padded_sphere`).  The exported constants come from fitting
+camera rays, and of each of those scenes in a box twice its size (uniform
+grids only; :func:`padded_scene`).  The exported constants come from fitting
 this suite.
 """
 
@@ -61,22 +61,24 @@ EMPTY_GRID_SIDES = (1, 2, 4, 8, 12, 16, 20, 24, 28, 32, 36, 40)
 CELL_TRIANGLE_COUNTS = (1, 16, 32, 48, 64, 96, 128, 160, 192, 224, 256)
 #: Top-level sides of the isolating subgrid suite.
 SUBGRID_SIDES = (2, 4, 8, 16)
-#: The in-context suite's own scene: the built-in sphere in a box :data:`PADDED_SCALE` times
-#: its own per axis (:func:`padded_sphere`), so a ray crosses empty cells before and after
-#: the surface's.  In the other scenes a grid's steps, occupied cells entered and bytes read
-#: grow together with its resolution, which leaves T_step on a ridge with T_visit and T_mem
-#: (r's posterior correlation with T_step -0.8 to -0.9): here steps grow apart from the
-#: other two.  On this project's 2-core host it took r's 95% half-width from 19-26% to
-#: 10-15% (isotropic rays) and from 7-9% to 5-6% (camera), with the cross-validated error
-#: at 1.8-2.5% as before (docs/calibration.md, "Empty space around the sphere").
-PADDED_SCENE = "sphere-padded"
+#: The in-context suite's built-in scenes.
+BARE_CONTEXT_SCENES = ("sphere", "cylinder1996", "scattered-compact", "scattered-skinny", "cylinder196")
+#: Each of them also padded: the scene in a box :data:`PADDED_SCALE` times its own per axis
+#: (:func:`padded_scene`), named with :data:`PADDED_SUFFIX`, so a ray crosses empty cells
+#: before and after the scene's.  In a bare scene a grid's steps, occupied cells entered and
+#: bytes read grow together with its resolution, which leaves T_step on a ridge with T_visit
+#: and T_mem (r's posterior correlation with T_step -0.8 to -0.9); in a padded one steps grow
+#: apart from the other two.  On this project's 2-core host the padded sphere alone took r's
+#: 95% half-width from 19-26% to 10-15% (isotropic rays) and from 7-9% to 5-6% (camera); all
+#: five padded, to 5.7-7.3% and 2.2-3.2%, with the cross-validated error at 1.6-2.1% against
+#: 2.3-2.5% (docs/calibration.md, "Empty space around the scenes").
 PADDED_SCALE = 2.0
-#: Scenes of the in-context suite: built-in ones by name, and :data:`PADDED_SCENE`.
-CONTEXT_SCENES = ("sphere", "cylinder1996", "scattered-compact", "scattered-skinny", "cylinder196", PADDED_SCENE)
-#: In-context scenes timed with uniform grids only: the padded sphere's nested grids were
-#: priced 24-52% over their time (likely one T_sub for subgrids of another kind), which
-#: widened every configuration's misfit term.
-CONTEXT_UNIFORM_ONLY = (PADDED_SCENE,)
+PADDED_SUFFIX = "-padded"
+#: Scenes of the in-context suite: the built-in ones, then each padded.  Padded scenes are
+#: timed with uniform grids only: the padded sphere's nested grids were priced 24-52% over
+#: their time (likely one T_sub for subgrids of another kind), which widened every
+#: configuration's misfit term.
+CONTEXT_SCENES = BARE_CONTEXT_SCENES + tuple(name + PADDED_SUFFIX for name in BARE_CONTEXT_SCENES)
 #: Total cells as multiples of N for the in-context uniform grids (coarse to fine).  Dense
 #: (about half an octave apart): the width of r's interval is set by how the model misfits
 #: the configurations, not by the repeats, and shrinks with the number of configurations; on
@@ -196,15 +198,16 @@ def isolated_configs(intersector: str, seed: int = 0) -> list[Config]:
     return out
 
 
-def padded_sphere(scale: float = PADDED_SCALE) -> Scene:
-    """The built-in sphere with its box grown ``scale`` times per axis about its centre.
+def padded_scene(name: str, scale: float = PADDED_SCALE) -> Scene:
+    """Built-in scene ``name`` with its box grown ``scale`` times per axis about its centre.
 
-    Two triangles of a thousandth of the sphere's radius, each in a corner of the grown
-    box, set the box (a grid's box is its scene's); the rest of the added space is empty.
+    Two triangles of a thousandth of the box's largest half-side, each in a corner of the
+    grown box, set the box (a grid's box is its scene's); the rest of the added space is
+    empty.  Named ``name`` + :data:`PADDED_SUFFIX`.
     """
-    if not (math.isfinite(scale) and scale >= 1.0):
+    if not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale >= 1.0):
         raise ValueError(f"scale must be finite and >= 1, got {scale!r}")
-    v, f = load_builtin("sphere")
+    v, f = load_builtin(name)
     lo, hi = v.min(axis=0), v.max(axis=0)
     centre, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
     eps = 1e-3 * float(half.max())
@@ -215,12 +218,14 @@ def padded_sphere(scale: float = PADDED_SCALE) -> Scene:
         extra.append([corner, corner - sign * np.array([eps, 0.0, 0.0]), corner - sign * np.array([0.0, eps, 0.0])])
     verts = np.vstack([v, np.asarray(extra, dtype=np.float64).reshape(-1, 3)])
     faces = np.vstack([f, len(v) + np.arange(6, dtype=np.int64).reshape(2, 3)])
-    return Scene(np.ascontiguousarray(verts), np.ascontiguousarray(faces), name=PADDED_SCENE)
+    return Scene(np.ascontiguousarray(verts), np.ascontiguousarray(faces), name=name + PADDED_SUFFIX)
 
 
 def context_scene(name: str) -> Scene:
-    """An in-context scene by name: :data:`PADDED_SCENE` or a built-in scene."""
-    return padded_sphere() if name == PADDED_SCENE else Scene.builtin(name)
+    """An in-context scene by name: a built-in scene, or one with :data:`PADDED_SUFFIX` padded."""
+    if name.endswith(PADDED_SUFFIX):
+        return padded_scene(name[: -len(PADDED_SUFFIX)])
+    return Scene.builtin(name)
 
 
 def hits_box(o: np.ndarray, d: np.ndarray, lo, hi) -> np.ndarray:
@@ -269,7 +274,7 @@ def context_configs(intersector: str, seed: int = 0, scenes=None, copies: int | 
         for c in multiples:
             res = resolution_for_cells(min(c * n, MAX_SUITE_CELLS), ext)
             grids.append((_res_label(res), lambda res=res, scene=scene: Grid.uniform(scene, res, intersector)))
-        for levels in () if name in CONTEXT_UNIFORM_ONLY else CONTEXT_LEVELS:
+        for levels in () if name.endswith(PADDED_SUFFIX) else CONTEXT_LEVELS:
             grids.append((f"L{levels}", lambda levels=levels, scene=scene: Grid.nested(
                 scene, levels=levels, intersector=intersector)))
         # Each grid and its copies are built once and timed under every ray set: in each ray

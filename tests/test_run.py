@@ -74,35 +74,46 @@ def test_in_context_grids_are_timed_on_copies(small_suite, monkeypatch):
         suites.context_configs("watertight", 0, scenes=("cylinder196",), copies=0)
 
 
-def test_padded_sphere_adds_empty_space_and_steps_apart_from_visits(monkeypatch):
-    """The suite's padded sphere is the built-in sphere, unchanged, in a box PADDED_SCALE
-    times its own about the same centre; the suite times it with uniform grids only, and
-    on the same rays' kind a grid of as many cells per triangle steps through more cells
-    per occupied cell entered than the bare sphere's (what separates T_step from T_visit)."""
+@pytest.mark.parametrize("name", suites.BARE_CONTEXT_SCENES)
+def test_padded_scenes_add_empty_space_and_steps_apart_from_visits(name, monkeypatch):
+    """Each in-context scene padded is the built-in scene, unchanged, in a box PADDED_SCALE
+    times its own about the same centre; the suite times it with uniform grids only, and a
+    grid of as many cells per triangle steps through more cells per occupied cell entered
+    than the bare scene's (what separates T_step from T_visit)."""
     from calibrate._grid import Grid, Scene, resolution_for_cells
 
-    bare, padded = Scene.builtin("sphere"), suites.context_scene(suites.PADDED_SCENE)
-    assert padded.name == suites.PADDED_SCENE and padded.n_triangles == bare.n_triangles + 2
+    padded_name = name + suites.PADDED_SUFFIX
+    assert padded_name in suites.CONTEXT_SCENES and name in suites.CONTEXT_SCENES
+    bare, padded = Scene.builtin(name), suites.context_scene(padded_name)
+    assert padded.name == padded_name and padded.n_triangles == bare.n_triangles + 2
     np.testing.assert_array_equal(padded.vertices[: len(bare.vertices)], bare.vertices)
     np.testing.assert_array_equal(padded.faces[: bare.n_triangles], bare.faces)
     centre, half = 0.5 * (bare.box_lo + bare.box_hi), 0.5 * (bare.box_hi - bare.box_lo)
-    np.testing.assert_allclose(padded.box_lo, centre - suites.PADDED_SCALE * half, rtol=0, atol=1e-12)
-    np.testing.assert_allclose(padded.box_hi, centre + suites.PADDED_SCALE * half, rtol=0, atol=1e-12)
+    atol = 1e-12 * float(np.abs(bare.box_hi - bare.box_lo).max())
+    np.testing.assert_allclose(padded.box_lo, centre - suites.PADDED_SCALE * half, rtol=0, atol=atol)
+    np.testing.assert_allclose(padded.box_hi, centre + suites.PADDED_SCALE * half, rtol=0, atol=atol)
     ratios = {}
     for scene in (bare, padded):
         o, d = suites._rays(scene, "isotropic", 5)
         o, d = o[:2048], d[:2048]
         res = resolution_for_cells(scene.n_triangles, scene.box_hi - scene.box_lo)
         steps, _, _, visits = Grid.uniform(scene, res).count(o, d, visits=True)
-        ratios[scene.name] = steps.sum() / visits.sum()
-    assert ratios[suites.PADDED_SCENE] > 1.5 * ratios["sphere"], ratios
+        ratios[scene.name] = steps.sum() / max(int(visits.sum()), 1)
+    assert ratios[padded_name] > 1.5 * ratios[name], ratios
     monkeypatch.setattr(suites, "CONTEXT_CELLS_PER_TRIANGLE", (1 / 8, 1 / 4))
+    monkeypatch.setattr(suites, "CONTEXT_SKINNY_EXTRA", ())
     monkeypatch.setattr(suites, "CONTEXT_RAYS_PER_BATCH", 64)
-    configs = suites.context_configs("watertight", 0, scenes=(suites.PADDED_SCENE,), copies=1)
+    configs = suites.context_configs("watertight", 0, scenes=(padded_name,), copies=1)
     assert len(configs) == 2 * len(suites.CONTEXT_RAY_SETS)
-    assert all(c.scene == suites.PADDED_SCENE and c.subgrids == 0 and "L" not in c.resolution for c in configs)
-    with pytest.raises(ValueError, match="scale"):
-        suites.padded_sphere(0.5)
+    assert all(c.scene == padded_name and c.subgrids == 0 and "L" not in c.resolution for c in configs)
+    bare_configs = suites.context_configs("watertight", 0, scenes=(name,), copies=1)
+    assert len(bare_configs) == (2 + len(suites.CONTEXT_LEVELS)) * len(suites.CONTEXT_RAY_SETS)
+
+
+def test_padded_scene_refuses_a_box_smaller_than_the_scene():
+    for bad in (0.5, float("nan"), float("inf"), "2"):
+        with pytest.raises(ValueError, match="scale"):
+            suites.padded_scene("cylinder196", bad)
 
 
 def test_run_writes_a_valid_calibration(small_suite, tmp_path):
