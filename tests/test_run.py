@@ -111,7 +111,7 @@ def test_padded_scenes_add_empty_space_and_steps_apart_from_visits(name, monkeyp
 
 
 def test_padded_scene_refuses_a_box_smaller_than_the_scene():
-    for bad in (0.5, float("nan"), float("inf"), "2"):
+    for bad in (0.5, float("nan"), float("inf"), "2", True):
         with pytest.raises(ValueError, match="scale"):
             suites.padded_scene("cylinder196", bad)
 
