@@ -70,7 +70,7 @@ BARE_CONTEXT_SCENES = ("sphere", "cylinder1996", "scattered-compact", "scattered
 #: and T_mem (r's posterior correlation with T_step -0.8 to -0.9); in a padded one steps grow
 #: apart from the other two.  On this project's 2-core host the padded sphere alone took r's
 #: 95% half-width from 19-26% to 10-15% (isotropic rays) and from 7-9% to 5-6% (camera); all
-#: five padded, to 5.7-7.3% and 2.2-3.2%, with the cross-validated error at 1.6-2.1% against
+#: five padded, to 5.7-7.3% and 2.2-3.3%, with the cross-validated error at 1.6-2.1% against
 #: 2.3-2.5% (docs/calibration.md, "Empty space around the scenes").
 PADDED_SCALE = 2.0
 PADDED_SUFFIX = "-padded"
