@@ -68,6 +68,20 @@ static void kept_drop(int i)
     --n_kept;
 }
 
+/* The oldest kept mappings taken out of the list (kept_lock held) until one more of `room`
+ * bytes fits beside the rest, or every one with `all`; their count, into out and out_len,
+ * for the caller to unmap once the lock is released. */
+static int kept_evict(int all, size_t room, void *out[GC_BIG_KEEP], size_t out_len[GC_BIG_KEEP])
+{
+    int n = 0;
+    while (n_kept > 0 && (all || n_kept == GC_BIG_KEEP || kept_bytes + room > GC_BIG_KEEP_BYTES)) {
+        out[n] = kept[0].p;
+        out_len[n++] = kept[0].len;
+        kept_drop(0);
+    }
+    return n;
+}
+
 /* The smallest kept mapping of len to 2 len bytes, taken out of the list; NULL if none. */
 static void *kept_take(size_t len, size_t *got)
 {
@@ -146,13 +160,8 @@ void gc_big_free(void *p, size_t mapped)
         /* kept; the oldest kept go to make room, unmapped outside the lock */
         void *out[GC_BIG_KEEP];
         size_t out_len[GC_BIG_KEEP];
-        int n_out = 0;
         KEPT_LOCK();
-        while (n_kept > 0 && (n_kept == GC_BIG_KEEP || kept_bytes + mapped > GC_BIG_KEEP_BYTES)) {
-            out[n_out] = kept[0].p;
-            out_len[n_out++] = kept[0].len;
-            kept_drop(0);
-        }
+        const int n_out = kept_evict(0, mapped, out, out_len);
         kept[n_kept].p = p;
         kept[n_kept++].len = mapped;
         kept_bytes += mapped;
@@ -187,13 +196,7 @@ void gc_release_memory(void)
     void *out[GC_BIG_KEEP];
     size_t out_len[GC_BIG_KEEP];
     KEPT_LOCK();
-    const int n = n_kept;
-    for (int k = 0; k < n; ++k) {
-        out[k] = kept[k].p;
-        out_len[k] = kept[k].len;
-    }
-    n_kept = 0;
-    kept_bytes = 0;
+    const int n = kept_evict(1, 0, out, out_len);
     KEPT_UNLOCK();
     for (int k = 0; k < n; ++k) {
         (void)munmap(out[k], out_len[k]);
