@@ -27,7 +27,7 @@ from typing import Callable
 
 import numpy as np
 
-from ._grid import Grid, Scene, empty_grid, resolution_for_cells
+from ._grid import Grid, Scene, _is_real, empty_grid, resolution_for_cells
 from .protocol import Copies
 from .rays import camera, isotropic
 from .scenes import load_builtin, scattered_compact
@@ -205,7 +205,7 @@ def padded_scene(name: str, scale: float = PADDED_SCALE) -> Scene:
     grown box, set the box (a grid's box is its scene's); the rest of the added space is
     empty.  Named ``name`` + :data:`PADDED_SUFFIX`.
     """
-    if isinstance(scale, bool) or not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale >= 1.0):
+    if not (_is_real(scale) and math.isfinite(float(scale)) and float(scale) >= 1.0):
         raise ValueError(f"scale must be finite and >= 1, got {scale!r}")
     v, f = load_builtin(name)
     lo, hi = v.min(axis=0), v.max(axis=0)
