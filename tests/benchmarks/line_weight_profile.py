@@ -1,0 +1,98 @@
+"""Benchmark: how well a calibration's timings fit with a test's cache lines weighted otherwise.
+
+    python tests/benchmarks/line_weight_profile.py CALIBRATION.json ... [--weights W ...] [--scene S ...]
+
+The memory term counts ``STEP_LINES`` (1) a cell step and ``TEST_LINES`` (72/64) a
+triangle test of the lines a ray fetches from beyond the cache (models/memory.py).
+The lines of one cell's packs come one after another and the hardware's prefetchers
+can fetch them ahead, so a test may cost less than 72/64 of a step's dependent load.
+For each weight W here, every calibration given is scored and refitted with
+``models.memory.TEST_LINES = W``:
+
+- ``score``: the sum over ray sets of the maximum log posterior of the fitted
+  configurations (the held-back ones left out), as ``calibrate run`` scores its
+  candidate cache sizes (calibrate.run.select_cache), against the file's cache size;
+  the weight the timings favour scores highest, and two weights within a few units
+  are not told apart;
+- the refit's isotropic r with its 95% half-width, and the held-back and
+  cross-validated errors (``calibrate fit``, calibrate.run.refit_calibration);
+- with ``--scene``, the uniform grid the refit plans for each scene (isotropic fit, as
+  ``calibrate predict`` plans it).
+
+Nothing is timed: the calibrations' stored measurements are fitted again.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+import models.memory as memory  # noqa: E402
+from calibrate import calfile  # noqa: E402
+from calibrate import run as R  # noqa: E402
+from calibrate._grid import Scene  # noqa: E402
+from calibrate.predict import predict  # noqa: E402
+
+DEFAULT_WEIGHTS = (0.25, 0.5, 0.75, 72 / 64, 1.5)
+
+
+def score(cal: dict) -> float:
+    """Maximum log posterior of the calibration's fitted configurations with the memory count
+    as models.memory stands now, summed over ray sets (calibrate.run.select_cache's score)."""
+    recs = calfile.apply_drift(cal["measurements"])
+    isolated, _ = R._isolated_fit(recs, 0)
+    cache = calfile.cache_bytes_of(cal)
+    _, scores = R.select_cache(recs, [cache], 0, R._priors(isolated))
+    return scores[cache]
+
+
+def constants_for(cal: dict, rays: str = "isotropic") -> tuple[dict, dict]:
+    """(constants, samples) of a calibration's fit of ``rays``, as predict loads them."""
+    block, fitted_on = calfile.fit_for_rays(cal, rays)
+    consts = dict(block["constants"], fitted_on=fitted_on, cache_bytes=calfile.cache_bytes_of(cal))
+    largest = calfile.largest_grid_bytes(cal)
+    if largest:
+        consts["largest_grid_bytes"] = largest
+    return consts, calfile.samples_by_name(block)
+
+
+def half_width(c: dict) -> float:
+    r = c["ratio"]
+    return 100 * (r["ci95"][1] - r["ci95"][0]) / 2 / r["median"]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("calibrations", nargs="+")
+    ap.add_argument("--weights", type=float, nargs="+", default=list(DEFAULT_WEIGHTS),
+                    help="lines a test counts (default: %(default)s)")
+    ap.add_argument("--scene", action="append", default=[], help="a built-in scene or mesh to plan (repeatable)")
+    args = ap.parse_args()
+    scenes = [Scene.load(s) for s in args.scene]
+    saved = memory.TEST_LINES
+    try:
+        for path in args.calibrations:
+            cal = calfile.load(path)
+            print(f"{path}: cache {calfile.cache_bytes_of(cal) / 2 ** 20:g} MiB")
+            print(f"  {'lines a test':>12} {'score':>8} {'isotropic r':>18} {'held back':>10} {'cross-val':>10}"
+                  + "".join(f"  {s.name[:22]:>22}" for s in scenes))
+            for w in args.weights:
+                memory.TEST_LINES = float(w)
+                new, _ = R.refit_calibration(cal, seed=0)
+                iso = new["by_rays"]["isotropic"]["constants"]
+                meta = new["meta"]
+                consts, samples = constants_for(new)
+                plans = ["x".join(map(str, predict(s, constants=consts, samples=samples, levels="1")["levels"][0]
+                                      ["resolution"])) for s in scenes]
+                print(f"  {w:12.3f} {score(cal):8.1f} {iso['ratio']['median']:8.3f} +-{half_width(iso):5.1f}%"
+                      f" {100 * meta['holdout_mare']:9.1f}% {100 * meta['cv_mare']:9.1f}%"
+                      + "".join(f"  {p:>22}" for p in plans), flush=True)
+    finally:
+        memory.TEST_LINES = saved
+
+
+if __name__ == "__main__":
+    main()
