@@ -25,7 +25,9 @@ Nothing is timed: the calibrations' stored measurements are fitted again.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
+import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
@@ -34,7 +36,7 @@ import models.memory as memory  # noqa: E402
 from calibrate import calfile  # noqa: E402
 from calibrate import run as R  # noqa: E402
 from calibrate._grid import Scene  # noqa: E402
-from calibrate.predict import predict  # noqa: E402
+from calibrate.predict import constants_from_args, predict  # noqa: E402
 
 DEFAULT_WEIGHTS = (0.25, 0.5, 0.75, 72 / 64, 1.5)
 
@@ -49,14 +51,12 @@ def score(cal: dict) -> float:
     return scores[cache]
 
 
-def constants_for(cal: dict, rays: str = "isotropic") -> tuple[dict, dict]:
-    """(constants, samples) of a calibration's fit of ``rays``, as predict loads them."""
-    block, fitted_on = calfile.fit_for_rays(cal, rays)
-    consts = dict(block["constants"], fitted_on=fitted_on, cache_bytes=calfile.cache_bytes_of(cal))
-    largest = calfile.largest_grid_bytes(cal)
-    if largest:
-        consts["largest_grid_bytes"] = largest
-    return consts, calfile.samples_by_name(block)
+def plan_source(cal: dict, folder: str) -> dict:
+    """predict's constants and samples of a calibration's isotropic fit, loaded from a file as
+    ``calibrate predict --calibration`` loads them."""
+    path = Path(folder) / "refit.json"
+    path.write_text(json.dumps(cal))
+    return constants_from_args(argparse.Namespace(calibration=str(path), ratio=None), rays="isotropic")
 
 
 def half_width(c: dict) -> float:
@@ -73,6 +73,7 @@ def main() -> None:
     args = ap.parse_args()
     scenes = [Scene.load(s) for s in args.scene]
     saved = memory.TEST_LINES
+    folder = tempfile.TemporaryDirectory()
     try:
         for path in args.calibrations:
             cal = calfile.load(path)
@@ -84,14 +85,15 @@ def main() -> None:
                 new, _ = R.refit_calibration(cal, seed=0)
                 iso = new["by_rays"]["isotropic"]["constants"]
                 meta = new["meta"]
-                consts, samples = constants_for(new)
-                plans = ["x".join(map(str, predict(s, constants=consts, samples=samples, levels="1")["levels"][0]
-                                      ["resolution"])) for s in scenes]
+                source = plan_source(new, folder.name)
+                plans = ["x".join(map(str, predict(s, levels="1", **source)["levels"][0]["resolution"]))
+                         for s in scenes]
                 print(f"  {w:12.3f} {score(cal):8.1f} {iso['ratio']['median']:8.3f} +-{half_width(iso):5.1f}%"
                       f" {100 * meta['holdout_mare']:9.1f}% {100 * meta['cv_mare']:9.1f}%"
                       + "".join(f"  {p:>22}" for p in plans), flush=True)
     finally:
         memory.TEST_LINES = saved
+        folder.cleanup()
 
 
 if __name__ == "__main__":
