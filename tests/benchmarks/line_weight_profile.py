@@ -36,6 +36,7 @@ import models.memory as memory  # noqa: E402
 from calibrate import calfile  # noqa: E402
 from calibrate import run as R  # noqa: E402
 from calibrate._grid import Scene  # noqa: E402
+from calibrate._io import UserError  # noqa: E402
 from calibrate.predict import constants_from_args, predict  # noqa: E402
 
 DEFAULT_WEIGHTS = (0.25, 0.5, 0.75, 72 / 64, 1.5)
@@ -64,6 +65,11 @@ def half_width(c: dict) -> float:
     return 100 * (r["ci95"][1] - r["ci95"][0]) / 2 / r["median"]
 
 
+def pct(x) -> str:
+    """A share as a percentage, or '-' where the file has none (no held-back configurations)."""
+    return "-" if x is None else f"{100 * x:.1f}%"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("calibrations", nargs="+")
@@ -77,19 +83,23 @@ def main() -> None:
     try:
         for path in args.calibrations:
             cal = calfile.load(path)
-            print(f"{path}: cache {calfile.cache_bytes_of(cal) / 2 ** 20:g} MiB")
+            cache = calfile.cache_bytes_of(cal)
+            if cache is None:
+                print(f"{path}: no cache size recorded, so no memory term: the weight changes nothing")
+                continue
+            print(f"{path}: cache {cache / 2 ** 20:g} MiB")
             print(f"  {'lines a test':>12} {'score':>8} {'isotropic r':>18} {'held back':>10} {'cross-val':>10}"
                   + "".join(f"  {s.name[:22]:>22}" for s in scenes))
             for w in args.weights:
                 memory.TEST_LINES = float(w)
                 new, _ = R.refit_calibration(cal, seed=0)
-                iso = new["by_rays"]["isotropic"]["constants"]
+                iso = new.get("by_rays", {}).get("isotropic", new)["constants"]
                 meta = new["meta"]
                 source = plan_source(new, folder.name)
                 plans = ["x".join(map(str, predict(s, levels="1", **source)["levels"][0]["resolution"]))
                          for s in scenes]
                 print(f"  {w:12.3f} {score(cal):8.1f} {iso['ratio']['median']:8.3f} +-{half_width(iso):5.1f}%"
-                      f" {100 * meta['holdout_mare']:9.1f}% {100 * meta['cv_mare']:9.1f}%"
+                      f" {pct(meta.get('holdout_mare')):>10} {pct(meta.get('cv_mare')):>10}"
                       + "".join(f"  {p:>22}" for p in plans), flush=True)
     finally:
         memory.TEST_LINES = saved
@@ -97,4 +107,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except (UserError, ValueError, OSError) as exc:  # a bad file or scene name: said, no traceback
+        sys.exit(f"line_weight_profile.py: {exc}")
