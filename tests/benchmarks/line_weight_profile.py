@@ -77,7 +77,10 @@ def main() -> None:
                     help="lines a test counts (default: %(default)s)")
     ap.add_argument("--scene", action="append", default=[], help="a built-in scene or mesh to plan (repeatable)")
     args = ap.parse_args()
-    scenes = [Scene.load(s) for s in args.scene]
+    try:
+        scenes = [Scene.load(s) for s in args.scene]
+    except (ValueError, OSError) as exc:
+        raise UserError(str(exc)) from None
     saved = memory.TEST_LINES
     folder = tempfile.TemporaryDirectory()
     try:
@@ -109,5 +112,5 @@ def main() -> None:
 if __name__ == "__main__":
     try:
         main()
-    except (UserError, ValueError, OSError) as exc:  # a bad file or scene name: said, no traceback
+    except UserError as exc:  # a bad file or scene name: said, no traceback
         sys.exit(f"line_weight_profile.py: {exc}")
