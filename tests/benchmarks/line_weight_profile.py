@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import tempfile
 from pathlib import Path
@@ -77,6 +78,9 @@ def main() -> None:
                     help="lines a test counts (default: %(default)s)")
     ap.add_argument("--scene", action="append", default=[], help="a built-in scene or mesh to plan (repeatable)")
     args = ap.parse_args()
+    bad = [w for w in args.weights if not (math.isfinite(w) and w >= 0)]
+    if bad:
+        ap.error(f"--weights must be finite and >= 0, got {bad[0]!r}")
     try:
         scenes = [Scene.load(s) for s in args.scene]
     except (ValueError, OSError) as exc:
