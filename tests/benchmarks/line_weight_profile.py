@@ -43,13 +43,19 @@ from calibrate.predict import constants_from_args, predict  # noqa: E402
 DEFAULT_WEIGHTS = (0.25, 0.5, 0.75, 72 / 64, 1.5)
 
 
-def score(cal: dict) -> float:
-    """Maximum log posterior of the calibration's fitted configurations with the memory count
-    as models.memory stands now, summed over ray sets (calibrate.run.select_cache's score)."""
+def fitted_timings(cal: dict) -> tuple[list, dict]:
+    """(the calibration's measurements with the host's slowdown divided out, the in-context
+    priors its isolating suites give); neither depends on the memory count, so once a file."""
     recs = calfile.apply_drift(cal["measurements"])
     isolated, _ = R._isolated_fit(recs, 0)
-    cache = calfile.cache_bytes_of(cal)
-    _, scores = R.select_cache(recs, [cache], 0, R._priors(isolated))
+    return recs, R._priors(isolated)
+
+
+def score(recs: list, priors: dict, cache: int) -> float:
+    """Maximum log posterior of the fitted configurations with the memory count as
+    models.memory stands now, against ``cache`` bytes, summed over ray sets
+    (calibrate.run.select_cache's score)."""
+    _, scores = R.select_cache(recs, [cache], 0, priors)
     return scores[cache]
 
 
@@ -95,6 +101,7 @@ def main() -> None:
                 print(f"{path}: no cache size recorded, so no memory term: the weight changes nothing")
                 continue
             print(f"{path}: cache {cache / 2 ** 20:g} MiB")
+            recs, priors = fitted_timings(cal)
             print(f"  {'lines a test':>12} {'score':>8} {'isotropic r':>18} {'held back':>10} {'cross-val':>10}"
                   + "".join(f"  {s.name[:22]:>22}" for s in scenes))
             for w in args.weights:
@@ -105,7 +112,7 @@ def main() -> None:
                 source = plan_source(new, folder.name)
                 plans = ["x".join(map(str, predict(s, levels="1", **source)["levels"][0]["resolution"]))
                          for s in scenes]
-                print(f"  {w:12.3f} {score(cal):8.1f} {iso['ratio']['median']:8.3f} +-{half_width(iso):5.1f}%"
+                print(f"  {w:12.3f} {score(recs, priors, cache):8.1f} {iso['ratio']['median']:8.3f} +-{half_width(iso):5.1f}%"
                       f" {pct(meta.get('holdout_mare')):>10} {pct(meta.get('cv_mare')):>10}"
                       + "".join(f"  {p:>22}" for p in plans), flush=True)
     finally:
