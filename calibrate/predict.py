@@ -52,7 +52,7 @@ from models.closed_forms import MAX_CELLS_PER_AXIS, MAX_TOTAL_CELLS, cells_to_re
 from models.effects import EFFECT_TOLERANCE, select_effects, termination_fraction
 from models.general import (THIN_AXIS_CELLS, Terms, cell_fraction, expected_refs, occupancy_changes,
                             predict_uniform, steps_per_ray, stopped_tests_per_ray, terminated_visits, visits_per_ray)
-from models.memory import lines_beyond_cache, read_bytes
+from models.memory import BITMAP_BYTES_PER_CELL, lines_beyond_cache, read_bytes
 from models.nested import MAX_LEVELS, TooManyPairs, clustering_change, nested_counts
 from models.portable import paper_k, paper_level_cells
 from models.stats import TerminationSample, scene_class, triangle_geometry, triangle_sample
@@ -70,6 +70,9 @@ DEFAULT_SCENE = "sphere"
 # --- memory layout of the kernel's grid (kernels/gc_internal.h, kernels/grid.c) ---------
 #: gc_cell: begin + count, two uint32.
 BYTES_PER_CELL = 8
+#: The occupancy bitmap: a bit a cell, in 64-bit words.
+CELLS_PER_OCCUPANCY_WORD = 64
+BYTES_PER_OCCUPANCY_WORD = 8
 #: a lane of a gc_pack: the triangle's 3 x 3 doubles and its int32 face index.
 BYTES_PER_REFERENCE = 72 + 4
 #: gc_node: one per (sub)grid, the top level included.
@@ -527,8 +530,11 @@ def _res_list(res):
 
 
 def _memory_bytes(cells, refs, nodes) -> int:
-    """Bytes of a built grid (kernels/grid.c, gc_grid_get_info), less the fixed gc_grid header."""
-    return int(BYTES_PER_CELL * cells + BYTES_PER_REFERENCE * refs + BYTES_PER_NODE * nodes)
+    """Bytes of a built grid (kernels/grid.c, gc_grid_get_info), less the fixed gc_grid header:
+    the cell records, the occupancy bitmap, the references' triangle copies and the nodes."""
+    words = math.ceil(cells / CELLS_PER_OCCUPANCY_WORD)
+    return int(BYTES_PER_CELL * cells + BYTES_PER_OCCUPANCY_WORD * words + BYTES_PER_REFERENCE * refs
+               + BYTES_PER_NODE * nodes)
 
 
 def _interval(x: np.ndarray) -> dict:
@@ -654,7 +660,7 @@ def charged_bytes(stats, res, k: Constants, steps, tests, memory_bytes) -> float
     if not k.has_memory:
         return float(memory_bytes)
     return read_bytes(stats.triangles, stats.extent, res, steps, tests, memory_bytes, k.cache_bytes,
-                      BYTES_PER_REFERENCE, BYTES_PER_CELL)
+                      BYTES_PER_REFERENCE, BITMAP_BYTES_PER_CELL)
 
 
 def _term_effect(name: str, share: float, head: str, what: str) -> dict:

@@ -23,7 +23,7 @@ import numpy as np
 from ._grid import Grid
 from .predict import BYTES_PER_CELL, BYTES_PER_REFERENCE
 from .rays import box_chords
-from models.memory import miss_fraction, weighted_miss_fraction
+from models.memory import BITMAP_BYTES_PER_CELL, miss_fraction, weighted_miss_fraction
 
 __all__ = ["cell_entries", "cell_bytes", "read_miss_fraction"]
 
@@ -83,9 +83,10 @@ def cell_entries(grid: Grid, origins, directions) -> tuple[np.ndarray, np.ndarra
 
 def cell_bytes(grid: Grid) -> np.ndarray:
     """(nx*ny*nz,) bytes a ray reads when it enters each cell of a uniform grid: the cell's
-    record and its references' triangle copies (kernels/gc_internal.h)."""
+    occupancy bit, and where it is set the cell's record and its references' triangle copies
+    (kernels/gc_internal.h)."""
     refs = np.asarray(grid.top_counts(), dtype=np.float64).ravel()
-    return BYTES_PER_CELL + BYTES_PER_REFERENCE * refs
+    return BITMAP_BYTES_PER_CELL + np.where(refs > 0, BYTES_PER_CELL + BYTES_PER_REFERENCE * refs, 0.0)
 
 
 def read_miss_fraction(grid: Grid, origins, directions, cache_bytes) -> dict:

@@ -1307,6 +1307,34 @@ static void fill_part(void *arg)
 
 static gc_status build_grid(builder *b, const gc_mesh *mesh, gc_grid **out);
 
+/* The cells' occupancy bits (gc_internal.h), 64 cells a word, from the finished records. */
+static gc_status fill_occupancy(builder *b)
+{
+    gc_grid *g = b->g;
+    const uint64_t words = GC_OCC_WORDS(g->n_cells);
+    gc_status st = check_memory(b, words * sizeof(uint64_t), "the cells' occupancy bits");
+    if (st != GC_OK) {
+        return st;
+    }
+    /* every word is written below */
+    g->occ = gc_big_alloc_raw((size_t)words * sizeof(uint64_t), &g->occ_mapped, 0);
+    if (!g->occ) {
+        gc_set_error(b->err, "out of memory for the occupancy bits of %lld cells", (long long)g->n_cells);
+        return GC_ERR_NO_MEMORY;
+    }
+    const gc_cell *cells = g->cells;
+    for (uint64_t w = 0; w < words; ++w) {
+        const int64_t c0 = (int64_t)(w * 64);
+        const int64_t n = g->n_cells - c0 < 64 ? g->n_cells - c0 : 64;
+        uint64_t bits = 0;
+        for (int64_t k = 0; k < n; ++k) {
+            bits |= (uint64_t)(cells[c0 + k].count != 0) << k;
+        }
+        g->occ[w] = bits;
+    }
+    return GC_OK;
+}
+
 gc_status gc_grid_build(const gc_mesh *mesh, const gc_build_params *params, gc_grid **out, char *err)
 {
     *out = NULL;
@@ -1457,6 +1485,11 @@ static gc_status build_grid(builder *b, const gc_mesh *mesh, gc_grid **out)
     g->refs = NULL;
     if (!g->cells_mapped) {
         g->cells = gc_big_move(g->cells, (size_t)g->n_cells * sizeof(gc_cell), &g->cells_mapped);
+    }
+    st = fill_occupancy(b);
+    if (st != GC_OK) {
+        gc_grid_free(g);
+        return st;
     }
     *out = g;
     return GC_OK;

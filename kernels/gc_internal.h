@@ -8,7 +8,11 @@
  *           triangles' centroids;
  *   ref_tris : the vertices of each reference's triangle and its face index, in packs
  *           of GC_LANES references (gc_pack) so that one coordinate of neighbouring
- *           references is one vector load.
+ *           references is one vector load;
+ *   occ   : one bit per cell of every node, bit c % 64 of word c / 64 set when cell c holds
+ *           references or a subgrid.  The walk reads a cell's bit, and its record only where
+ *           the bit is set: an empty cell costs a bit of an array 64 times smaller than the
+ *           records, which the caches keep where a big grid's records would not fit.
  * A cell whose count is GC_CELL_SUBGRID holds a subgrid: its begin is a node index.
  */
 #ifndef GC_INTERNAL_H
@@ -91,13 +95,23 @@ struct gc_grid {
     int64_t n_nodes;
     gc_cell *cells;
     int64_t n_cells;
-    size_t ref_tris_mapped, cells_mapped; /* bytes mapped by gc_big_alloc, 0 if malloc'd */
+    uint64_t *occ;      /* the cells' occupancy bits (above), GC_OCC_WORDS(n_cells) words */
+    size_t ref_tris_mapped, cells_mapped, occ_mapped; /* bytes mapped by gc_big_alloc, 0 if malloc'd */
     uint32_t *refs;     /* the mesh face of each reference (build only; freed after) */
     int64_t n_refs;
     gc_intersector intersector;
     int mailbox;
     int levels;
 };
+
+/* Words of the occupancy bits of n cells. */
+#define GC_OCC_WORDS(n) (((uint64_t)(n) + 63) / 64)
+
+/* Whether cell idx (an index into the grid's cells) holds references or a subgrid. */
+GC_INLINE uint32_t gc_occupied(const uint64_t *occ, int64_t idx)
+{
+    return (uint32_t)(occ[(uint64_t)idx >> 6] >> ((uint64_t)idx & 63)) & 1u;
+}
 
 /* The one place a cell's index is computed. */
 GC_INLINE uint64_t gc_cell_index(const gc_node *g, int32_t x, int32_t y, int32_t z)

@@ -89,6 +89,7 @@ GC_TW_ATTR static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, con
     const int64_t first = (int64_t)nd->first_cell;
     const int64_t end = first + axis_stride[2] * (int64_t)nd->n[2];
     const gc_cell *cells = g->cells;
+    const uint64_t *occ = g->occ;
     const gc_pack *ref_tris = g->ref_tris;
 #if GC_TW_SIMD == 4
     gc_ray4 rayv;
@@ -125,7 +126,13 @@ GC_TW_ATTR static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, con
         const int64_t next = idx + stride[a];
 #endif
         const double t_exit = t_axis < tb ? t_axis : tb;
-        const gc_cell cell = cells[idx];
+        /* A cell's record is read only where its occupancy bit is set: most cells a ray
+         * steps through are empty, and their bits stay cached where the records of a grid
+         * of many MB would not. */
+        gc_cell cell = {0, 0};
+        if (gc_occupied(occ, idx)) {
+            cell = cells[idx];
+        }
 #if GC_TW_COUNT
         cnt->steps++;
         {
@@ -134,11 +141,11 @@ GC_TW_ATTR static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, con
             prev_occupied = occupied;
         }
 #endif
-        /* The next cell along the ray, and the first of its triangles, start
-         * loading while this cell is tested: a cell's triangles lie at a place
-         * in memory nothing else predicts, and waiting for them made an
-         * occupied cell cost several empty ones. */
-        if (next >= first && next < end) {
+        /* The next cell along the ray, if occupied, and the first of its triangles
+         * start loading while this cell is tested: a cell's triangles lie at a place
+         * in memory nothing else predicts, and waiting for them made an occupied cell
+         * cost several empty ones. */
+        if (next >= first && next < end && gc_occupied(occ, next)) {
             const gc_cell nc = cells[next];
             if (nc.count != GC_CELL_SUBGRID) {
                 GC_PREFETCH(ref_tris + nc.begin / GC_LANES);

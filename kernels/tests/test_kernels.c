@@ -156,6 +156,23 @@ static void random_rays(int64_t n, const double lo[3], const double hi[3], uint6
     }
 }
 
+/* The occupancy bits (gc_internal.h) say which records hold references or a subgrid, cell
+ * for cell, and the last word's bits past the cells are clear. */
+static void check_occupancy(const gc_grid *g, const char *label)
+{
+    int64_t bad = 0, occupied = 0;
+    for (int64_t c = 0; c < g->n_cells; ++c) {
+        const uint32_t want = g->cells[c].count != 0;
+        bad += gc_occupied(g->occ, c) != want;
+        occupied += want;
+    }
+    const uint64_t words = GC_OCC_WORDS(g->n_cells);
+    const int64_t spare = (int64_t)(words * 64) - g->n_cells;
+    const uint64_t past = spare ? g->occ[words - 1] >> (64 - spare) : 0;
+    CHECK(bad == 0 && past == 0, "%s: %lld of %lld occupancy bits wrong (%lld occupied), bits past the cells %llx",
+          label, (long long)bad, (long long)g->n_cells, (long long)occupied, (unsigned long long)past);
+}
+
 /* Compare one grid with brute force on n rays; returns the number of disagreements. */
 static int64_t compare_with_brute(const mesh_buf *mb, const gc_build_params *p, int64_t n,
                                   const double *o, const double *d, const char *label)
@@ -168,6 +185,7 @@ static int64_t compare_with_brute(const mesh_buf *mb, const gc_build_params *p, 
     if (st != GC_OK) {
         return n;
     }
+    check_occupancy(g, label);
     double *t = malloc((size_t)n * sizeof(double)), *tb = malloc((size_t)n * sizeof(double)),
            *tc = malloc((size_t)n * sizeof(double));
     int32_t *pr = malloc((size_t)n * sizeof(int32_t)), *pb = malloc((size_t)n * sizeof(int32_t)),
