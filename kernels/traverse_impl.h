@@ -107,6 +107,15 @@ GC_TW_ATTR static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, con
     /* occupancy changes along this walk: the cell before the first counts as occupied */
     uint32_t prev_occupied = 1;
 #endif
+    /* The record of the cell the walk is in, read only where the cell's occupancy bit
+     * is set: most cells a ray steps through are empty, and their bits stay cached where
+     * the records of a grid of many MB would not.  The first cell's is read here, each
+     * next one's a step ahead (the look-ahead below), so the branch on it waits for no
+     * load. */
+    gc_cell nc = {0, 0};
+    if (gc_occupied(occ, idx)) {
+        nc = cells[idx];
+    }
     for (;;) {
 #if GC_MASKED_DDA
         const __m128d mx = _mm_and_pd(_mm_cmple_sd(vtx, vty), _mm_cmple_sd(vtx, vtz));
@@ -126,13 +135,7 @@ GC_TW_ATTR static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, con
         const int64_t next = idx + stride[a];
 #endif
         const double t_exit = t_axis < tb ? t_axis : tb;
-        /* A cell's record is read only where its occupancy bit is set: most cells a ray
-         * steps through are empty, and their bits stay cached where the records of a grid
-         * of many MB would not. */
-        gc_cell cell = {0, 0};
-        if (gc_occupied(occ, idx)) {
-            cell = cells[idx];
-        }
+        const gc_cell cell = nc;
 #if GC_TW_COUNT
         cnt->steps++;
         {
@@ -141,12 +144,14 @@ GC_TW_ATTR static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, con
             prev_occupied = occupied;
         }
 #endif
-        /* The next cell along the ray, if occupied, and the first of its triangles
-         * start loading while this cell is tested: a cell's triangles lie at a place
-         * in memory nothing else predicts, and waiting for them made an occupied cell
-         * cost several empty ones. */
+        /* The next cell's record, if occupied, and the first of its triangles start
+         * loading while this cell is tested: a cell's triangles lie at a place in memory
+         * nothing else predicts, and waiting for them made an occupied cell cost several
+         * empty ones.  The walk goes on only into a cell of this node (the cells left on
+         * each axis end it), so next is the cell of the next step whenever there is one. */
+        nc.count = 0;
         if (next >= first && next < end && gc_occupied(occ, next)) {
-            const gc_cell nc = cells[next];
+            nc = cells[next];
             if (nc.count != GC_CELL_SUBGRID) {
                 GC_PREFETCH(ref_tris + nc.begin / GC_LANES);
             }
