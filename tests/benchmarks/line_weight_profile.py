@@ -1,13 +1,15 @@
-"""Benchmark: how well a calibration's timings fit with a test's cache lines weighted otherwise.
+"""Benchmark: how well a calibration's timings fit with a test's (or a step's) cache lines weighted otherwise.
 
     python tests/benchmarks/line_weight_profile.py CALIBRATION.json ... [--weights W ...] [--scene S ...]
+        [--term test|step]
 
 The memory term counts ``STEP_LINES`` (1) a cell step and ``TEST_LINES`` (72/64) a
 triangle test of the lines a ray fetches from beyond the cache (models/memory.py).
 The lines of one cell's packs come one after another and the hardware's prefetchers
 can fetch them ahead, so a test may cost less than 72/64 of a step's dependent load.
 For each weight W here, every calibration given is scored and refitted with
-``models.memory.TEST_LINES = W``:
+``models.memory.TEST_LINES = W`` (with ``--term step``, ``STEP_LINES = W``: since the
+kernels read a step's record only in occupied cells, a step fetches less than a line):
 
 - ``score``: the sum over ray sets of the maximum log posterior of the fitted
   configurations (the held-back ones left out), as ``calibrate run`` scores its
@@ -41,6 +43,8 @@ from calibrate._io import UserError  # noqa: E402
 from calibrate.predict import constants_from_args, predict  # noqa: E402
 
 DEFAULT_WEIGHTS = (0.25, 0.5, 0.75, 72 / 64, 1.5)
+#: The weight each term names: the models.memory constant it patches.
+TERMS = {"test": "TEST_LINES", "step": "STEP_LINES"}
 
 
 def fitted_timings(cal: dict) -> tuple[list, dict]:
@@ -81,7 +85,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("calibrations", nargs="+")
     ap.add_argument("--weights", type=float, nargs="+", default=list(DEFAULT_WEIGHTS),
-                    help="lines a test counts (default: %(default)s)")
+                    help="lines a test (or a step, --term step) counts (default: %(default)s)")
+    ap.add_argument("--term", choices=tuple(TERMS), default="test", help="the count weighted (default: test)")
     ap.add_argument("--scene", action="append", default=[], help="a built-in scene or mesh to plan (repeatable)")
     args = ap.parse_args()
     bad = [w for w in args.weights if not (math.isfinite(w) and w >= 0)]
@@ -91,7 +96,8 @@ def main() -> None:
         scenes = [Scene.load(s) for s in args.scene]
     except (ValueError, OSError) as exc:
         raise UserError(str(exc)) from None
-    saved = memory.TEST_LINES
+    name = TERMS[args.term]
+    saved = getattr(memory, name)
     folder = tempfile.TemporaryDirectory()
     try:
         for path in args.calibrations:
@@ -102,10 +108,10 @@ def main() -> None:
                 continue
             print(f"{path}: cache {cache / 2 ** 20:g} MiB")
             recs, priors = fitted_timings(cal)
-            print(f"  {'lines a test':>12} {'score':>8} {'isotropic r':>18} {'held back':>10} {'cross-val':>10}"
+            print(f"  {'lines a ' + args.term:>12} {'score':>8} {'isotropic r':>18} {'held back':>10} {'cross-val':>10}"
                   + "".join(f"  {s.name[:22]:>22}" for s in scenes))
             for w in args.weights:
-                memory.TEST_LINES = float(w)
+                setattr(memory, name, float(w))
                 new, _ = R.refit_calibration(cal, seed=0)
                 iso = new.get("by_rays", {}).get("isotropic", new)["constants"]
                 meta = new["meta"]
@@ -116,7 +122,7 @@ def main() -> None:
                       f" {pct(meta.get('holdout_mare')):>10} {pct(meta.get('cv_mare')):>10}"
                       + "".join(f"  {p:>22}" for p in plans), flush=True)
     finally:
-        memory.TEST_LINES = saved
+        setattr(memory, name, saved)
         folder.cleanup()
 
 
