@@ -195,6 +195,14 @@ TERMINATION_SAMPLE_MAX_TRIANGLES = 200_000
 #: (how a mesh's sheets share cells changes with the cell: models.general.occupancy_scale);
 #: a grid whose expected references exceed TERMINATION_MAX_REFS is left out.
 OCCUPANCY_AXIS_SCALES = (0.5, 2.0 ** -0.5, 2.0 ** 0.5)
+#: Per-axis factors on the sample's grid of the finer grids whose changes of occupancy it also
+#: counts (models.general.occupancy_changes): a small mesh's plans have many cells a triangle
+#: (`cylinder196` 11x11x23, 14 a triangle, against the sample's 0.25), where its walks change
+#: occupancy (0.78 a ray there, none in every grid up to 3x3x16); left out past
+#: TERMINATION_MAX_REFS as above, or past CHANGES_MAX_CELLS cells (a big mesh's plans have
+#: fewer cells a triangle than the sample's grid at twice its cells an axis).
+CHANGES_AXIS_SCALES = (2.0, 4.0)
+CHANGES_MAX_CELLS = 2 ** 18
 
 _STATS_CACHE: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 _SAMPLED_STATS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
@@ -501,6 +509,12 @@ def sample_termination(scene: Scene, rays: int = TERMINATION_RAYS, seed: int = T
         occupancy.append((other, _occupied_cells(g)))
         changes.append((other, float(g.count(o, d, changes=True)[-1].mean())))
         del g
+    for s in CHANGES_AXIS_SCALES:
+        other = _scaled(res, s)
+        if (other == res or other[0] * other[1] * other[2] > CHANGES_MAX_CELLS
+                or expected_refs(scene.stats, other) > TERMINATION_MAX_REFS):
+            continue
+        changes.append((other, float(Grid.uniform(scene, other).count(o, d, changes=True)[-1].mean())))
     return TerminationSample(fraction=fraction, p_hit=float(np.mean(np.isfinite(t_hit))), rays=int(rays),
                              resolution=res, occupied=occupied, visits=visits, occupancy=tuple(occupancy),
                              changes=tuple(changes))

@@ -608,16 +608,20 @@ def test_sampled_changes_come_back_at_their_grids_and_are_interpolated_between_t
     assert occupancy_changes(replace(st, termination=replace(sample, changes=())), sizes[1]) == 0.0
 
 
-@pytest.mark.parametrize("name", ["sphere", "cylinder1996"])
+@pytest.mark.parametrize("name", ["sphere", "cylinder1996", "cylinder196"])
 def test_the_termination_sample_counts_the_changes_the_kernel_counts_on_its_grids(name):
-    """The sample's changes per ray are the instrumented kernel's on its own rays, at its grid and
-    at each of the grids it counts occupied cells in; and a plan prices them with T_visit."""
-    from calibrate.predict import TERMINATION_RAYS, TERMINATION_SEED, sample_termination
+    """The sample's changes per ray are the instrumented kernel's on its own rays, at its grid, at
+    each of the grids it counts occupied cells in, and at the finer grids of CHANGES_AXIS_SCALES
+    within CHANGES_MAX_CELLS; and a plan prices them with T_visit."""
+    from calibrate.predict import (CHANGES_AXIS_SCALES, CHANGES_MAX_CELLS, TERMINATION_RAYS, TERMINATION_SEED,
+                                   _scaled, sample_termination)
 
     scene = Scene.builtin(name)
     sample = sample_termination(scene)
-    grids = [sample.resolution] + [r for r, _ in sample.occupancy]
-    assert [r for r, _ in sample.changes] == grids
+    finer = [r for r in (_scaled(sample.resolution, f) for f in CHANGES_AXIS_SCALES)
+             if int(np.prod(r)) <= CHANGES_MAX_CELLS]
+    grids = [sample.resolution] + [r for r, _ in sample.occupancy] + finer
+    assert finer and [r for r, _ in sample.changes] == grids
     o, d = isotropic(scene.box_lo, scene.box_hi, TERMINATION_RAYS, TERMINATION_SEED)
     for res, per_ray in sample.changes:
         assert per_ray == pytest.approx(float(Grid.uniform(scene, res).count(o, d, changes=True)[-1].mean()),
