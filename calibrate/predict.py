@@ -481,7 +481,9 @@ def sample_termination(scene: Scene, rays: int = TERMINATION_RAYS, seed: int = T
     :func:`models.general.surface_visits` takes a surface's count from, and the occupied
     cells of grids at OCCUPANCY_AXIS_SCALES of its cells per axis, between which
     :func:`models.general.occupancy_scale` interpolates (40-60 ms more on the 70,000- to
-    86,000-triangle scans, against 9 ms for the one grid).
+    86,000-triangle scans, against 9 ms for the one grid), and the changes of occupancy per
+    ray on each of those grids and on the finer ones of CHANGES_AXIS_SCALES
+    (:func:`models.general.occupancy_changes`; 40-100 ms more on the scans).
     """
     from . import rays as _rays_mod
 
