@@ -41,7 +41,9 @@ Schema (version :data:`SCHEMA_VERSION`), one JSON object::
          ...extra keys kept}
       ],
       "meta": {...},                    # free-form (tool version, budget, wall time, ...);
-                                        #   cache_bytes: the cache T_mem was measured against
+                                        #   cache_bytes: the cache T_mem was measured against;
+                                        #   line_weights: the lines a step, an occupied cell and
+                                        #   a test were charged when T_mem was fitted
       "by_rays": {                      # optional: the same fit on one ray set's in-context
         "camera": {"constants": {...}, "samples": {...}, "diagnostics": {...}},
         "isotropic": {...}              #   measurements alone (coherent rays step for 1/2 to
@@ -557,6 +559,14 @@ def cache_bytes_of(cal: Mapping) -> int | None:
         if v is not None:
             return int(v)
     return None
+
+
+def line_weights_of(cal: Mapping) -> dict | None:
+    """The cache lines a step, an occupied cell entered and a test were charged when the
+    calibration's T_mem was fitted (``meta.line_weights``, models.memory.line_weights); None
+    when the file does not say (fitted before 2026-12-07: a line a step, 72/64 a test)."""
+    w = (cal.get("meta") or {}).get("line_weights")
+    return dict(w) if isinstance(w, Mapping) else None
 
 
 def largest_grid_bytes(cal: Mapping) -> int | None:

@@ -52,7 +52,7 @@ from models.closed_forms import MAX_CELLS_PER_AXIS, MAX_TOTAL_CELLS, cells_to_re
 from models.effects import EFFECT_TOLERANCE, select_effects, termination_fraction
 from models.general import (THIN_AXIS_CELLS, Terms, cell_fraction, expected_refs, occupancy_changes,
                             predict_uniform, steps_per_ray, stopped_tests_per_ray, terminated_visits, visits_per_ray)
-from models.memory import BITMAP_BYTES_PER_CELL, lines_beyond_cache, read_bytes
+from models.memory import BITMAP_BYTES_PER_CELL, line_weights, lines_beyond_cache, read_bytes
 from models.nested import MAX_LEVELS, TooManyPairs, clustering_change, nested_counts
 from models.portable import paper_k, paper_level_cells
 from models.stats import TerminationSample, scene_class, triangle_geometry, triangle_sample
@@ -246,11 +246,12 @@ class Constants:
         """The memory effect's term is in the cost (a calibration fitted T_mem)."""
         return self.t_mem > 0 and self.cache_bytes is not None
 
-    def lines(self, steps, tests, memory_bytes) -> float:
-        """Cache lines per ray fetched from beyond the cache (models/memory.py); 0 without T_mem."""
+    def lines(self, steps, tests, memory_bytes, visits=0.0) -> float:
+        """Cache lines per ray fetched from beyond the cache (models/memory.py; ``visits``: the
+        occupied cells entered and changes of occupancy, what T_visit prices); 0 without T_mem."""
         if not self.has_memory:
             return 0.0
-        return float(lines_beyond_cache(steps, tests, memory_bytes, self.cache_bytes))
+        return float(lines_beyond_cache(steps, tests, memory_bytes, self.cache_bytes, visits))
 
     @property
     def has_visits(self) -> bool:
@@ -266,7 +267,7 @@ class Constants:
             out = out + s["t_visit"] * visits
         if hits > 0:
             out = out + s["t_hit"] * hits
-        lines = self.lines(steps, tests, memory_bytes)
+        lines = self.lines(steps, tests, memory_bytes, visits)
         return out + s["t_mem"] * lines if lines > 0 else out
 
     def cost(self, steps, tests, subgrids=0.0, memory_bytes=0.0, visits=0.0, hits=0.0) -> float:
@@ -274,7 +275,8 @@ class Constants:
         bytes, the occupied-cell term the occupied cells a ray enters, the hit term the share of
         rays that hit)."""
         return (self.t_setup + self.t_step * steps + self.t_int * tests + self.t_sub * subgrids
-                + self.t_mem * self.lines(steps, tests, memory_bytes) + self.t_visit * visits + self.t_hit * hits)
+                + self.t_mem * self.lines(steps, tests, memory_bytes, visits) + self.t_visit * visits
+                + self.t_hit * hits)
 
 
 def _median_of(value, name):
@@ -429,7 +431,22 @@ def load_calibration_constants(path, rays: str | None = None) -> Constants:
     largest = calfile.largest_grid_bytes(cal)
     if largest is not None:
         constants["largest_grid_bytes"] = largest
-    return resolve_constants(constants=constants, samples=calfile.samples_by_name(block))
+    k = resolve_constants(constants=constants, samples=calfile.samples_by_name(block))
+    weights = calfile.line_weights_of(cal)
+    if k.has_memory and weights != line_weights():
+        k.notes.append(f"{p}'s T_mem was fitted with other cache lines a step, an occupied cell and a test "
+                       f"({_weights_text(weights)}) than today's ({_weights_text(line_weights())}): "
+                       f"`calibrate fit {p}` refits it from the file's measurements")
+    return k
+
+
+def _weights_text(weights) -> str:
+    """A calibration's line weights (:func:`calibrate.calfile.line_weights_of`) as a note says them."""
+    if weights is None:
+        return "unrecorded: before 2026-12-07 a line a step, none an occupied cell, 72/64 a test"
+    show = lambda x: f"{x:g}" if isinstance(x, (int, float)) else "?"  # noqa: E731
+    return f"{show(weights.get('step'))} a step, {show(weights.get('visit'))} an occupied cell, " \
+           f"{show(weights.get('test'))} a test"
 
 
 # ---------------------------------------------------------------------------------------
@@ -706,7 +723,7 @@ def _memory_effect(k: Constants, steps, tests, memory_bytes, what: str, subgrids
     they are not the grid's (:func:`charged_bytes`)."""
     priced = memory_bytes if charged is None else charged
     total = k.cost(steps, tests, subgrids, priced, visits)
-    lines = k.lines(steps, tests, priced)
+    lines = k.lines(steps, tests, priced, visits)
     share = k.t_mem * lines / total if total > 0 else 0.0
     weighed = ("" if charged is None or abs(priced - memory_bytes) <= 1e-9 * memory_bytes else
                f", weighed by where rays read it as {priced / 2 ** 20:.3g} MiB (models.memory.read_bytes)")
@@ -1381,7 +1398,7 @@ def predict(scene, *, constants=None, samples=None, ratio=None, fidelity="analyt
     predicted = dict(ns_per_ray=cost if k.units == "ns" else None, steps_per_ray=steps, tests_per_ray=tests,
                      subgrids_per_ray=subgrids, visits_per_ray=visits, changes_per_ray=changes, hits_per_ray=hits)
     if k.has_memory and fidelity != "paper":
-        predicted["lines_per_ray"] = k.lines(steps, tests, plan_bytes)
+        predicted["lines_per_ray"] = k.lines(steps, tests, plan_bytes, visits)
     if k.units != "ns":
         predicted["cost_t_step"] = cost
     terms = plan.get("terms") or Terms(mailbox=mailbox)

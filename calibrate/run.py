@@ -28,7 +28,7 @@ from . import calfile, suites
 from . import fit as _fit
 from ._io import UserError, atomic_write_text, check_writable
 from ._grid import intersector_code
-from models.memory import candidate_cache_sizes, lines_beyond_cache
+from models.memory import candidate_cache_sizes, line_weights, lines_beyond_cache
 from .host import cache_bytes, fingerprint, last_cache_bytes
 from .protocol import REL_SPREAD_WARN, Measurement, MeasurementInterrupted, measure, pin_to_one_core
 
@@ -213,7 +213,7 @@ def records(configs, timings: dict, held: set, cache_size: int | None = None) ->
     for c in configs:
         rec = c.record()
         if cache_size is not None and c.kind == "in_context":
-            rec["misses"] = float(lines_beyond_cache(c.steps, c.tests, c.memory_bytes, cache_size))
+            rec["misses"] = _misses(rec, cache_size)
         m = timings.get(c.name)
         rec["values_ns"] = list(m.values_ns) if m else []
         if m and m.values_ns and len(m.stamps_s) == len(m.values_ns) and min(m.values_ns) > 0:
@@ -228,8 +228,14 @@ def records(configs, timings: dict, held: set, cache_size: int | None = None) ->
 
 def with_cache(recs, cache_size: int) -> list:
     """The records with every in-context one's ``misses`` counted against ``cache_size`` bytes."""
-    return [dict(r, misses=float(lines_beyond_cache(r["steps"], r["tests"], r["memory_bytes"], cache_size)))
-            if r["kind"] == "in_context" else r for r in recs]
+    return [dict(r, misses=_misses(r, cache_size)) if r["kind"] == "in_context" else r for r in recs]
+
+
+def _misses(rec, cache_size: int) -> float:
+    """An in-context record's lines beyond a cache of ``cache_size`` bytes (models/memory.py),
+    its occupied cells entered counted with its changes of occupancy, as T_visit prices them."""
+    visits = float(rec.get("visits", 0)) + float(rec.get("changes", 0))
+    return float(lines_beyond_cache(rec["steps"], rec["tests"], rec["memory_bytes"], cache_size, visits))
 
 
 #: Log-posterior margin within which cache sizes count as tied (:func:`select_cache`): the
@@ -597,7 +603,7 @@ def refit_calibration(cal, *, seed: int = 0) -> tuple[dict, list]:
                     holdout_mare_pooled=None if math.isnan(mare_pooled) else mare_pooled,
                     holdout_mare_by_rays=mare_by_rays, cv_mare=None if math.isnan(cv) else cv,
                     cv_mare_by_rays=cv_by_rays)
-    meta.update(ratio_rel_width=_rel_width(result), refit_seed=seed)
+    meta.update(ratio_rel_width=_rel_width(result), refit_seed=seed, line_weights=line_weights())
     if skipped:
         meta["by_rays_skipped"] = skipped
     new = calfile.from_fit(result, fingerprint=cal["fingerprint"], measurements=recs, isolated=isolated, meta=meta,
@@ -747,7 +753,8 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
                     ratio_rel_width=_rel_width(result), pinned_core=pin.core, pin_note=pin.note,
                     rays_per_batch=suites.RAYS_PER_BATCH, context_rays_per_batch=suites.CONTEXT_RAYS_PER_BATCH,
                     min_value_ns=MIN_VALUE_NS,
-                    cache_bytes=cache, cache_source=cache_source, cache_candidates=candidates)
+                    cache_bytes=cache, cache_source=cache_source, cache_candidates=candidates,
+                    line_weights=line_weights())
         if cache_scores is not None:
             meta["cache_scores"] = {str(c): (v if math.isfinite(v) else None) for c, v in cache_scores.items()}
         if skipped:

@@ -12,7 +12,10 @@ with the grid's size.
 The model here adds one term per ray, ``T_mem * lines``, where ``lines`` is the
 expected number of cache lines a ray fetches from beyond the cache:
 
-    lines = miss_fraction(F, C) * (steps * STEP_LINES + tests * TEST_LINES)
+    lines = miss_fraction(F, C) * (steps * STEP_LINES + visits * VISIT_LINES + tests * TEST_LINES)
+
+with ``visits`` what T_visit prices: the occupied cells a ray enters and its changes of
+occupancy (:func:`models.general.occupancy_changes`).
 
 - A step: ``STEP_LINES``, one line.  The kernels read a cell's bit in the grid's
   occupancy bitmap (one bit a cell) and its 8-byte record only where the bit is set
@@ -20,12 +23,23 @@ expected number of cache lines a ray fetches from beyond the cache:
   empty cells beyond the cache fell from 34-37 ns to 4-5 ns (docs/kernels.md, "The
   occupancy bitmap").  The line a step is charged stands for what fine grids still pay
   by the step: the bitmap's lines from the outer caches (a bitmap of 8 MiB at 67 million
-  cells), the pages it spans, the record of each occupied cell entered.  Priced on the
-  bitmap's own bytes instead (``miss_fraction(cells / 8, C)`` a step), the model fits
-  the calibration's timings as well (held-back 2.5% against 2.2%, cross-validated 2.0%
-  both; its grids reach 42 MiB, where no bitmap misses) but puts ``cylinder19996`` at
-  310x279x390 cells, priced 717 ns a ray at 336x336x593 where 1,420 were measured; the
-  line a step keeps the plan on the flat cells measured fastest (175x134x3, 347 ns).
+  cells), the pages it spans.  Priced on the bitmap's own bytes instead
+  (``miss_fraction(cells / 8, C)`` a step), the model fits the calibration's timings as
+  well (held-back 2.5% against 2.2%, cross-validated 2.0% both; its grids reach 42 MiB,
+  where no bitmap misses) but puts ``cylinder19996`` at 310x279x390 cells, priced 717 ns
+  a ray at 336x336x593 where 1,420 were measured; the line a step keeps the plan on the
+  flat cells measured fastest (175x134x3, 347 ns).  A quarter line a step (with the
+  visits' lines below and half a line a test) fits the suite's timings better still
+  (2026-12-07: 14-15 log units over a line a step and none a visit, against 5-6 for the
+  weights here) but plans ``cylinder19996`` at 111x111x178 from one of two calibrations
+  of the same hour, 2.5 times slower than the flat 185x143x2 measured beside it: the
+  suite's grids end at 42 MiB, and what a step costs in a grid of 200 MB it cannot say.
+- An occupied cell entered: ``VISIT_LINES``, two lines, its record and the first line of
+  its references' packs, each at a place in memory set by the cell alone.  Nothing was
+  charged for it until 2026-12-07; with it the suite's timings fit better by 5-6 log units
+  (calibrate.run.select_cache's score, two default runs refitted) and Sponza, whose rays
+  enter one or two cells of a big grid, is planned where it was measured best
+  (docs/calibration.md, "Two lines for an occupied cell").
 - A test reads one reference's copy of its triangle (72 bytes of coordinates,
   stored with the reference in a pack of four; the 4-byte face index beside
   them is read only on a hit): ``TEST_LINES = 72 / 64`` lines.
@@ -59,18 +73,27 @@ import functools
 
 import numpy as np
 
-__all__ = ["LINE_BYTES", "STEP_LINES", "TEST_LINES", "BITMAP_BYTES_PER_CELL", "miss_fraction", "lines_beyond_cache",
-           "candidate_cache_sizes", "weighted_miss_fraction", "read_bytes", "READ_RATE_BINS"]
+__all__ = ["LINE_BYTES", "STEP_LINES", "VISIT_LINES", "TEST_LINES", "BITMAP_BYTES_PER_CELL", "miss_fraction",
+           "lines_beyond_cache", "line_weights", "candidate_cache_sizes", "weighted_miss_fraction", "read_bytes", "READ_RATE_BINS"]
 
 #: Bytes of a cache line.
 LINE_BYTES = 64
-#: Lines a cell step is charged (see the module's notes: the bitmap's line, its pages and the
-#: records of occupied cells, as measured, rather than the bit alone).
+#: Lines a cell step is charged (see the module's notes: the bitmap's line and the pages fine
+#: grids span, as measured, rather than the bit alone).
 STEP_LINES = 1.0
+#: Lines an occupied cell entered (or a change of occupancy, as T_visit counts them) is
+#: charged: the cell's record and the first line of its packs.
+VISIT_LINES = 2.0
 #: Bytes of the occupancy bitmap a cell takes (a bit).
 BITMAP_BYTES_PER_CELL = 1.0 / 8.0
 #: Lines a triangle test reads (the reference's 72-byte copy of its triangle).
 TEST_LINES = 72.0 / LINE_BYTES
+
+
+def line_weights() -> dict:
+    """The lines a step, an occupied cell entered and a test are charged, as a calibration records
+    them (``meta.line_weights``): a T_mem is fitted for these weights and no others."""
+    return {"step": STEP_LINES, "visit": VISIT_LINES, "test": TEST_LINES}
 
 
 #: The cache a traversal runs out of is not one size: the level-2 cache, the level-3 share
@@ -266,14 +289,16 @@ def read_bytes(triangles, extent, resolution, steps, tests, memory_bytes, cache_
     return mem
 
 
-def lines_beyond_cache(steps, tests, memory_bytes, cache_bytes):
-    """Expected cache lines fetched from beyond the cache, for the given steps and tests.
+def lines_beyond_cache(steps, tests, memory_bytes, cache_bytes, visits=0.0):
+    """Expected cache lines fetched from beyond the cache, for the given steps, tests and
+    ``visits`` (the occupied cells entered and changes of occupancy, what T_visit prices).
 
-    Works on per-ray values and on batch totals alike (it is linear in steps and tests).
+    Works on per-ray values and on batch totals alike (it is linear in the counts).
     """
     s = np.asarray(steps, dtype=np.float64)
     t = np.asarray(tests, dtype=np.float64)
-    return miss_fraction(memory_bytes, cache_bytes) * (STEP_LINES * s + TEST_LINES * t)
+    v = np.asarray(visits, dtype=np.float64)
+    return miss_fraction(memory_bytes, cache_bytes) * (STEP_LINES * s + VISIT_LINES * v + TEST_LINES * t)
 
 
 def candidate_cache_sizes(smallest, largest) -> list[int]:

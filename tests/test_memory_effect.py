@@ -24,7 +24,7 @@ from calibrate._grid import Scene
 from calibrate.predict import _uniform_counts, predict, resolve_constants, scene_statistics
 from conftest import assert_planted_recovered, exported_header, planted_counts
 from models.effects import select_effects
-from models.memory import (LINE_BYTES, STEP_LINES, TEST_LINES, candidate_cache_sizes, lines_beyond_cache,
+from models.memory import (LINE_BYTES, STEP_LINES, TEST_LINES, VISIT_LINES, candidate_cache_sizes, lines_beyond_cache,
                            miss_fraction, weighted_miss_fraction)
 from models.uncertainty import discrete_posterior_optimum
 
@@ -114,14 +114,15 @@ def test_the_weighted_share_is_the_mean_over_the_spread(monkeypatch):
     assert 0.0 < got < 1.0
 
 
-def test_lines_count_one_line_a_step_and_a_triangle_copy_a_test(one_capacity):
-    assert STEP_LINES == 1.0 and TEST_LINES == 72.0 / LINE_BYTES
+def test_lines_count_a_line_a_step_two_an_occupied_cell_and_a_triangle_copy_a_test(one_capacity):
+    assert (STEP_LINES, VISIT_LINES, TEST_LINES) == (1.0, 2.0, 72.0 / LINE_BYTES)
     f = 4.0 * CACHE  # three quarters of the grid is beyond the cache
-    assert lines_beyond_cache(10, 8, f, CACHE) == pytest.approx(0.75 * (10 + 8 * 72 / 64))
+    assert lines_beyond_cache(10, 8, f, CACHE, 3) == pytest.approx(0.75 * (10 + 3 * 2 + 8 * 72 / 64))
+    assert lines_beyond_cache(10, 8, f, CACHE) == pytest.approx(0.75 * (10 + 8 * 72 / 64))  # no visits given: none
     # linear: batch totals are rays times per-ray values
-    per_ray = lines_beyond_cache(10, 8, f, CACHE)
-    assert lines_beyond_cache(RAYS * 10, RAYS * 8, f, CACHE) == pytest.approx(RAYS * per_ray)
-    assert lines_beyond_cache(10, 8, CACHE, CACHE) == 0.0
+    per_ray = lines_beyond_cache(10, 8, f, CACHE, 3)
+    assert lines_beyond_cache(RAYS * 10, RAYS * 8, f, CACHE, RAYS * 3) == pytest.approx(RAYS * per_ray)
+    assert lines_beyond_cache(10, 8, CACHE, CACHE, 3) == 0.0
 
 
 # -- the host's cache ------------------------------------------------------------------------
@@ -339,6 +340,34 @@ def test_t_mem_round_trips(planted, tmp_path):
     assert again["constants"]["t_mem_ns"]["median"] == pytest.approx(TRUTH["t_mem_ns"], rel=0.05)
 
 
+def test_a_t_mem_fitted_with_other_line_weights_is_said_to_need_a_refit(planted, tmp_path):
+    from calibrate import predict as P
+    from models.memory import line_weights
+
+    _, _, cal = planted
+    old = tmp_path / "old.json"  # no meta.line_weights: fitted before they were recorded
+    calfile.save(old, cal)
+    notes = P.load_calibration_constants(old).notes
+    assert any("was fitted with other cache lines" in n and "unrecorded" in n and f"calibrate fit {old}" in n
+               for n in notes), notes
+    other = tmp_path / "other.json"
+    calfile.save(other, dict(cal, meta=dict(cal["meta"], line_weights={"step": 1.0, "visit": 0.0, "test": 1.125})))
+    assert any("(1 a step, 0 an occupied cell, 1.125 a test)" in n for n in P.load_calibration_constants(other).notes)
+    today = tmp_path / "today.json"
+    calfile.save(today, dict(cal, meta=dict(cal["meta"], line_weights=line_weights())))
+    assert not any("other cache lines" in n for n in P.load_calibration_constants(today).notes)
+
+
+def test_a_refit_records_the_line_weights_it_fitted_with(planted):
+    from calibrate import run
+    from models.memory import line_weights
+
+    _, _, cal = planted
+    new, _ = run.refit_calibration(cal, seed=0)
+    assert calfile.line_weights_of(new) == line_weights() == {"step": 1.0, "visit": 2.0, "test": 1.125}
+    assert calfile.line_weights_of(cal) is None
+
+
 def _mutated(cal, fn):
     bad = json.loads(json.dumps(cal))
     fn(bad)
@@ -378,8 +407,9 @@ def _cost_at(res, t_mem, cache):
     k = resolve_constants(constants=_constants(t_mem, cache))
     stats = scene_statistics(Scene.builtin("sphere"))
     terms = select_effects(stats, k.t_setup, k.t_step, k.t_int, termination=True, overlap="exact", levels=1).terms
-    steps, tests, _, _, _, charged = _uniform_counts(stats, tuple(res), k, terms)  # the bytes the term prices
-    return k.cost(steps, tests, 0.0, charged)
+    # the bytes the term prices, and the occupied cells entered (their lines, as the planner counts them)
+    steps, tests, _, _, visits, charged = _uniform_counts(stats, tuple(res), k, terms)
+    return k.cost(steps, tests, 0.0, charged, visits)
 
 
 @pytest.mark.parametrize("t_mem, cache", [(40.0, 4096), (6.0, 3 << 20), (20.0, 1 << 20)])

@@ -17,7 +17,7 @@ import pytest
 from calibrate._grid import Grid, Scene
 from calibrate.rays import isotropic
 from calibrate.reach import cell_bytes, cell_entries, read_miss_fraction
-from models.memory import STEP_LINES, TEST_LINES, miss_fraction, weighted_miss_fraction
+from models.memory import STEP_LINES, TEST_LINES, VISIT_LINES, miss_fraction, weighted_miss_fraction
 
 
 # -- the weighted miss share ----------------------------------------------------------------
@@ -224,6 +224,7 @@ def test_the_long_cylinder_is_planned_with_cells_long_along_its_axis():
         grid = Grid.uniform(scene, r)
         steps, tests, _, visits = (float(x.mean()) for x in grid.count(o, d, visits=True))
         share = read_miss_fraction(grid, o, d, k.cache_bytes)["weighted"]
-        return k.cost(steps, tests, 0.0, 0.0, visits) + k.t_mem * share * (STEP_LINES * steps + TEST_LINES * tests)
+        lines = STEP_LINES * steps + VISIT_LINES * visits + TEST_LINES * tests
+        return k.cost(steps, tests, 0.0, 0.0, visits) + k.t_mem * share * lines
 
     assert kernel_price(res) < 0.7 * kernel_price((106, 106, 170))

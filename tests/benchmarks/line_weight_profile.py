@@ -1,15 +1,17 @@
-"""Benchmark: how well a calibration's timings fit with a test's (or a step's) cache lines weighted otherwise.
+"""Benchmark: how well a calibration's timings fit with a test's (a step's, an occupied cell's) cache lines weighted otherwise.
 
     python tests/benchmarks/line_weight_profile.py CALIBRATION.json ... [--weights W ...] [--scene S ...]
-        [--term test|step]
+        [--term test|step|visit]
 
-The memory term counts ``STEP_LINES`` (1) a cell step and ``TEST_LINES`` (72/64) a
-triangle test of the lines a ray fetches from beyond the cache (models/memory.py).
+The memory term counts ``STEP_LINES`` (1) a cell step, ``VISIT_LINES`` (2) an occupied
+cell entered or a change of occupancy and ``TEST_LINES`` (72/64) a triangle test of the
+lines a ray fetches from beyond the cache (models/memory.py).
 The lines of one cell's packs come one after another and the hardware's prefetchers
 can fetch them ahead, so a test may cost less than 72/64 of a step's dependent load.
 For each weight W here, every calibration given is scored and refitted with
 ``models.memory.TEST_LINES = W`` (with ``--term step``, ``STEP_LINES = W``: since the
-kernels read a step's record only in occupied cells, a step fetches less than a line):
+kernels read a step's record only in occupied cells, a step fetches less than a line;
+with ``--term visit``, ``VISIT_LINES = W``):
 
 - ``score``: the sum over ray sets of the maximum log posterior of the fitted
   configurations (the held-back ones left out), as ``calibrate run`` scores its
@@ -44,7 +46,7 @@ from calibrate.predict import constants_from_args, predict  # noqa: E402
 
 DEFAULT_WEIGHTS = (0.25, 0.5, 0.75, 72 / 64, 1.5)
 #: The weight each term names: the models.memory constant it patches.
-TERMS = {"test": "TEST_LINES", "step": "STEP_LINES"}
+TERMS = {"test": "TEST_LINES", "step": "STEP_LINES", "visit": "VISIT_LINES"}
 
 
 def fitted_timings(cal: dict) -> tuple[list, dict]:
@@ -85,7 +87,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("calibrations", nargs="+")
     ap.add_argument("--weights", type=float, nargs="+", default=list(DEFAULT_WEIGHTS),
-                    help="lines a test (or a step, --term step) counts (default: %(default)s)")
+                    help="lines a test (a step, an occupied cell: --term) counts (default: %(default)s)")
     ap.add_argument("--term", choices=tuple(TERMS), default="test", help="the count weighted (default: test)")
     ap.add_argument("--scene", action="append", default=[], help="a built-in scene or mesh to plan (repeatable)")
     args = ap.parse_args()

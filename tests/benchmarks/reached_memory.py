@@ -35,7 +35,7 @@ from calibrate._grid import Grid
 from calibrate.compare import DEFAULT_RAY_COUNT
 from calibrate.rays import isotropic
 from calibrate.reach import read_miss_fraction
-from models.memory import STEP_LINES, TEST_LINES
+from models.memory import STEP_LINES, TEST_LINES, VISIT_LINES
 
 RAY_SEED = 11
 DEFAULT_RESOLUTIONS = ["65x65x12", "65x65x24", "65x65x48", "65x65x105", "96x96x12", "96x96x24", "96x96x48",
@@ -88,7 +88,7 @@ def main() -> None:
             continue
         reach = read_miss_fraction(Grid.uniform(scene, res), ro, rd, k.cache_bytes)
         steps, tests, visits = row["steps"], row["tests"], row["visits"]
-        lines = STEP_LINES * steps + TEST_LINES * tests  # the lines a ray reads (models/memory.py)
+        lines = STEP_LINES * steps + VISIT_LINES * visits + TEST_LINES * tests  # the lines a ray reads (models/memory.py)
         base = k.cost(steps, tests, 0.0, 0.0, visits)
         whole = base + k.t_mem * reach["whole"] * lines
         read = base + k.t_mem * reach["weighted"] * lines
