@@ -32,8 +32,8 @@ occupancy (:func:`models.general.occupancy_changes`).
   visits' lines below and half a line a test) fits the suite's timings better still
   (2026-12-07: 14-15 log units over a line a step and none a visit, against 5-6 for the
   weights here) but plans ``cylinder19996`` at 111x111x178 from one of two calibrations
-  of the same hour, 2.5 times slower than the flat 185x143x2 measured beside it: the
-  suite's grids end at 42 MiB, and what a step costs in a grid of 200 MB it cannot say.
+  of an hour, 2.5 times slower than the flat 185x143x2 another plan of that hour measured:
+  the suite's grids end at 42 MiB, and what a step costs in a grid of 200 MB it cannot say.
 - An occupied cell entered: ``VISIT_LINES``, two lines, its record and the first line of
   its references' packs, each at a place in memory set by the cell alone.  Nothing was
   charged for it until 2026-12-07; with it the suite's timings fit better by 5-6 log units
