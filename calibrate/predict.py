@@ -212,6 +212,10 @@ _SAMPLED_STATS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 # constants
 # ---------------------------------------------------------------------------------------
 
+#: :attr:`Constants.line_weights` of constants not read from a calibration file.
+NO_LINE_WEIGHTS = "not from a calibration file"
+
+
 class Constants:
     """Medians and posterior samples of the hardware constants.
 
@@ -220,7 +224,9 @@ class Constants:
     ``units`` is ``"ns"`` or ``"T_step"`` (ratio mode); ``notes`` lists assumptions;
     ``fitted_on`` is the ray set the constants were fitted on alone, or None (all of them);
     ``cache_bytes`` is the cache T_mem was measured against (None without a memory term);
-    ``largest_grid_bytes`` the largest grid the calibration timed (None when unknown).
+    ``largest_grid_bytes`` the largest grid the calibration timed (None when unknown);
+    ``line_weights`` the line weights a calibration file recorded for its T_mem (a mapping, or
+    None when it does not say), NO_LINE_WEIGHTS for constants not read from a file.
     """
 
     def __init__(self, t_setup, t_step, t_int, t_sub, samples, units, notes, fitted_on=None, t_mem=0.0,
@@ -236,6 +242,7 @@ class Constants:
         self.units = units
         self.notes = notes
         self.fitted_on = fitted_on
+        self.line_weights = NO_LINE_WEIGHTS
 
     @property
     def ratio(self) -> float:
@@ -299,7 +306,10 @@ def resolve_constants(constants=None, samples=None, ratio=None) -> Constants:
         ``fitted_on`` names the ray set they were fitted on alone (a note says so), and
         ``cache_bytes`` the cache T_mem was measured against (required with T_mem), and
         ``largest_grid_bytes`` the largest grid the calibration timed (a plan beyond
-        :data:`EXTRAPOLATION_FACTOR` times it gets a note).
+        :data:`EXTRAPOLATION_FACTOR` times it gets a note), and ``line_weights`` the cache lines
+        a step, an occupied cell and a test were charged when its T_mem was fitted
+        (:func:`calibrate.calfile.line_weights_of`; None: the file does not say): other than
+        today's (:func:`models.memory.line_weights`), a note says to refit.
     samples : mapping of the same names -> (S,) posterior samples (ns), e.g.
         :func:`calibrate.calfile.samples_by_name`; medians default to theirs.
     ratio : ``T_int / T_step`` > 0 (no calibration; costs in units of T_step).
@@ -369,6 +379,11 @@ def resolve_constants(constants=None, samples=None, ratio=None) -> Constants:
             raise ValueError(f"cache_bytes must be > 0, got {cache}")
         notes.append(f"memory effect: T_mem = {med['t_mem']:.3g} ns per cache line fetched from beyond the "
                      f"host's {cache / 2 ** 20:.3g} MiB cache")
+        if "line_weights" in constants and constants["line_weights"] != line_weights():
+            notes.append(f"the calibration's T_mem was fitted with other cache lines a step, an occupied cell "
+                         f"and a test ({_weights_text(constants['line_weights'])}) than today's "
+                         f"({_weights_text(line_weights())}): `calibrate fit FILE` refits it from the file's "
+                         "measurements")
     else:
         med["t_mem"] = 0.0
         cache = None
@@ -394,9 +409,12 @@ def resolve_constants(constants=None, samples=None, ratio=None) -> Constants:
             raise ValueError(f"largest_grid_bytes must be a whole number of bytes, got {largest!r}") from None
         if largest <= 0:
             raise ValueError(f"largest_grid_bytes must be > 0, got {largest}")
-    return Constants(med["t_setup"], med["t_step"], med["t_int"], med["t_sub"], arrays, "ns", notes,
-                     fitted_on=fitted_on, t_mem=med["t_mem"], cache_bytes=cache, largest_grid_bytes=largest,
-                     t_visit=med["t_visit"], t_hit=med["t_hit"])
+    k = Constants(med["t_setup"], med["t_step"], med["t_int"], med["t_sub"], arrays, "ns", notes,
+                  fitted_on=fitted_on, t_mem=med["t_mem"], cache_bytes=cache, largest_grid_bytes=largest,
+                  t_visit=med["t_visit"], t_hit=med["t_hit"])
+    if constants is not None and "line_weights" in constants:
+        k.line_weights = constants["line_weights"]  # passed on by constants_from_args
+    return k
 
 
 def extrapolation_note(k: Constants, memory_bytes) -> str | None:
@@ -431,13 +449,8 @@ def load_calibration_constants(path, rays: str | None = None) -> Constants:
     largest = calfile.largest_grid_bytes(cal)
     if largest is not None:
         constants["largest_grid_bytes"] = largest
-    k = resolve_constants(constants=constants, samples=calfile.samples_by_name(block))
-    weights = calfile.line_weights_of(cal)
-    if k.has_memory and weights != line_weights():
-        k.notes.append(f"{p}'s T_mem was fitted with other cache lines a step, an occupied cell and a test "
-                       f"({_weights_text(weights)}) than today's ({_weights_text(line_weights())}): "
-                       f"`calibrate fit {p}` refits it from the file's measurements")
-    return k
+    constants["line_weights"] = calfile.line_weights_of(cal)
+    return resolve_constants(constants=constants, samples=calfile.samples_by_name(block))
 
 
 def _weights_text(weights) -> str:
@@ -1559,6 +1572,8 @@ def constants_from_args(args, rays: str | None = None) -> dict:
         constants["cache_bytes"] = k.cache_bytes
     if k.largest_grid_bytes is not None:
         constants["largest_grid_bytes"] = k.largest_grid_bytes
+    if k.line_weights != NO_LINE_WEIGHTS:
+        constants["line_weights"] = k.line_weights
     return dict(samples={f"{n}_ns": s[n] for n in names}, constants=constants)
 
 

@@ -341,21 +341,32 @@ def test_t_mem_round_trips(planted, tmp_path):
 
 
 def test_a_t_mem_fitted_with_other_line_weights_is_said_to_need_a_refit(planted, tmp_path):
+    import argparse
+
     from calibrate import predict as P
     from models.memory import line_weights
+
+    def notes(path):
+        """The notes of the file's constants, and of a prediction from it as the verbs load it."""
+        src = P.constants_from_args(argparse.Namespace(calibration=str(path), ratio=None))
+        return P.load_calibration_constants(path).notes, P.predict("cylinder196", levels="1", **src)["notes"]
 
     _, _, cal = planted
     old = tmp_path / "old.json"  # no meta.line_weights: fitted before they were recorded
     calfile.save(old, cal)
-    notes = P.load_calibration_constants(old).notes
-    assert any("was fitted with other cache lines" in n and "unrecorded" in n and f"calibrate fit {old}" in n
-               for n in notes), notes
+    for said in notes(old):
+        assert any("was fitted with other cache lines" in n and "unrecorded" in n and "calibrate fit FILE" in n
+                   for n in said), said
     other = tmp_path / "other.json"
     calfile.save(other, dict(cal, meta=dict(cal["meta"], line_weights={"step": 1.0, "visit": 0.0, "test": 1.125})))
-    assert any("(1 a step, 0 an occupied cell, 1.125 a test)" in n for n in P.load_calibration_constants(other).notes)
+    for said in notes(other):
+        assert any("(1 a step, 0 an occupied cell, 1.125 a test)" in n for n in said), said
     today = tmp_path / "today.json"
     calfile.save(today, dict(cal, meta=dict(cal["meta"], line_weights=line_weights())))
-    assert not any("other cache lines" in n for n in P.load_calibration_constants(today).notes)
+    for said in notes(today):
+        assert not any("other cache lines" in n for n in said), said
+    # constants given by hand say nothing of line weights
+    assert not any("other cache lines" in n for n in P.resolve_constants(constants=_constants(6.0, 3 << 20)).notes)
 
 
 def test_a_refit_records_the_line_weights_it_fitted_with(planted):
