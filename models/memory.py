@@ -38,8 +38,8 @@ occupancy (:func:`models.general.occupancy_changes`).
   its references' packs, each at a place in memory set by the cell alone.  Nothing was
   charged for it until 2026-12-07; with it the suite's timings fit better by 5-6 log units
   (calibrate.run.select_cache's score, two default runs refitted) and Sponza, whose rays
-  enter one or two cells of a big grid, is planned where it was measured best
-  (docs/calibration.md, "Two lines for an occupied cell").
+  enter one or two cells of a big grid, is planned within 2% of its measured best (10%
+  without; docs/calibration.md, "Two lines for an occupied cell").
 - A test reads one reference's copy of its triangle (72 bytes of coordinates,
   stored with the reference in a pack of four; the 4-byte face index beside
   them is read only on a hit): ``TEST_LINES = 72 / 64`` lines.
@@ -74,7 +74,8 @@ import functools
 import numpy as np
 
 __all__ = ["LINE_BYTES", "STEP_LINES", "VISIT_LINES", "TEST_LINES", "BITMAP_BYTES_PER_CELL", "miss_fraction",
-           "lines_beyond_cache", "line_weights", "candidate_cache_sizes", "weighted_miss_fraction", "read_bytes", "READ_RATE_BINS"]
+           "lines_beyond_cache", "line_weights", "candidate_cache_sizes", "weighted_miss_fraction", "read_bytes",
+           "READ_RATE_BINS"]
 
 #: Bytes of a cache line.
 LINE_BYTES = 64

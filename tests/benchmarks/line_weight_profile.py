@@ -1,4 +1,4 @@
-"""Benchmark: how well a calibration's timings fit with a test's (a step's, an occupied cell's) cache lines weighted otherwise.
+"""Benchmark: how well a calibration's timings fit with a test's (step's, occupied cell's) lines weighted otherwise.
 
     python tests/benchmarks/line_weight_profile.py CALIBRATION.json ... [--weights W ...] [--scene S ...]
         [--term test|step|visit]

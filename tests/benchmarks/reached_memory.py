@@ -87,8 +87,10 @@ def main() -> None:
             print(f"{'x'.join(map(str, res)):>12s}  skipped: {row['skipped']}")
             continue
         reach = read_miss_fraction(Grid.uniform(scene, res), ro, rd, k.cache_bytes)
-        steps, tests, visits = row["steps"], row["tests"], row["visits"]
-        lines = STEP_LINES * steps + VISIT_LINES * visits + TEST_LINES * tests  # the lines a ray reads (models/memory.py)
+        # the occupied cells entered and the changes of occupancy, as T_visit prices them
+        steps, tests, visits = row["steps"], row["tests"], row["visits"] + row["changes"]
+        # the lines a ray reads (models/memory.py)
+        lines = STEP_LINES * steps + VISIT_LINES * visits + TEST_LINES * tests
         base = k.cost(steps, tests, 0.0, 0.0, visits)
         whole = base + k.t_mem * reach["whole"] * lines
         read = base + k.t_mem * reach["weighted"] * lines
