@@ -230,7 +230,7 @@ class Constants:
     """
 
     def __init__(self, t_setup, t_step, t_int, t_sub, samples, units, notes, fitted_on=None, t_mem=0.0,
-                 cache_bytes=None, largest_grid_bytes=None, t_visit=0.0, t_hit=0.0):
+                 cache_bytes=None, largest_grid_bytes=None, t_visit=0.0, t_hit=0.0, line_weights=NO_LINE_WEIGHTS):
         self.t_setup, self.t_step, self.t_int, self.t_sub = (float(t_setup), float(t_step), float(t_int),
                                                              float(t_sub))
         self.t_mem = float(t_mem)
@@ -242,7 +242,7 @@ class Constants:
         self.units = units
         self.notes = notes
         self.fitted_on = fitted_on
-        self.line_weights = NO_LINE_WEIGHTS
+        self.line_weights = line_weights
 
     @property
     def ratio(self) -> float:
@@ -369,6 +369,7 @@ def resolve_constants(constants=None, samples=None, ratio=None) -> Constants:
         med["t_sub"] = RATIO_MODE_T_SUB_IN_T_STEP * med["t_step"]
         notes.append(f"the calibration has no T_sub: assumed {RATIO_MODE_T_SUB_IN_T_STEP:g} x T_step")
     cache = None if constants is None else constants.get("cache_bytes")
+    recorded = NO_LINE_WEIGHTS if constants is None else constants.get("line_weights", NO_LINE_WEIGHTS)
     if "t_mem" in med and med["t_mem"] > 0:
         try:
             cache = int(cache)
@@ -379,9 +380,9 @@ def resolve_constants(constants=None, samples=None, ratio=None) -> Constants:
             raise ValueError(f"cache_bytes must be > 0, got {cache}")
         notes.append(f"memory effect: T_mem = {med['t_mem']:.3g} ns per cache line fetched from beyond the "
                      f"host's {cache / 2 ** 20:.3g} MiB cache")
-        if "line_weights" in constants and constants["line_weights"] != line_weights():
+        if recorded != NO_LINE_WEIGHTS and recorded != line_weights():
             notes.append(f"the calibration's T_mem was fitted with other cache lines a step, an occupied cell "
-                         f"and a test ({_weights_text(constants['line_weights'])}) than today's "
+                         f"and a test ({_weights_text(recorded)}) than today's "
                          f"({_weights_text(line_weights())}): `calibrate fit FILE` refits it from the file's "
                          "measurements")
     else:
@@ -409,12 +410,9 @@ def resolve_constants(constants=None, samples=None, ratio=None) -> Constants:
             raise ValueError(f"largest_grid_bytes must be a whole number of bytes, got {largest!r}") from None
         if largest <= 0:
             raise ValueError(f"largest_grid_bytes must be > 0, got {largest}")
-    k = Constants(med["t_setup"], med["t_step"], med["t_int"], med["t_sub"], arrays, "ns", notes,
-                  fitted_on=fitted_on, t_mem=med["t_mem"], cache_bytes=cache, largest_grid_bytes=largest,
-                  t_visit=med["t_visit"], t_hit=med["t_hit"])
-    if constants is not None and "line_weights" in constants:
-        k.line_weights = constants["line_weights"]  # passed on by constants_from_args
-    return k
+    return Constants(med["t_setup"], med["t_step"], med["t_int"], med["t_sub"], arrays, "ns", notes,
+                     fitted_on=fitted_on, t_mem=med["t_mem"], cache_bytes=cache, largest_grid_bytes=largest,
+                     t_visit=med["t_visit"], t_hit=med["t_hit"], line_weights=recorded)
 
 
 def extrapolation_note(k: Constants, memory_bytes) -> str | None:
