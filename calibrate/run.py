@@ -56,7 +56,13 @@ PRIME_EACH_VALUE = True
 HOLDOUT_FRACTION = 0.2
 #: Share of the budget kept for fitting after the last stage (the pooled fit, then one
 #: per ray set): the least kept; a slower host keeps more (FIT_RESERVE_MARGIN, below).
-FIT_RESERVE_S = 9.0
+#: It is all the first stage keeps, and the first stage is the last where measuring it
+#: takes most of the budget: on a slower 2-core EPYC host (2026-12-07, evening) the first
+#: stage measured until the budget less this reserve, and the pooled fit took 6.1 s and the
+#: ray sets' 6.2 s: with 9 s kept, two default runs of three ended at 63.7 and 64.1 s, their
+#: trials of T_visit, T_mem and T_hit cut short (held-back error 13.5-14%, against 3.7%); with
+#: 15 s, two runs ended at 54.6-54.9 s with every term fitted (held back 3.0%).
+FIT_RESERVE_S = 15.0
 #: The time kept after the last stage is estimated from the stage before it, so that a host
 #: whose fits are slow (a noisy one: longer chains) still ends within the budget: the next
 #: stage's fits take up to FIT_RESERVE_MARGIN times the last stage's (more values, the same
@@ -122,6 +128,10 @@ STEADY_TESTS_PER_RAY = 32.0
 #: when fewer are steady, those with the longest walks or lists, and a warning.
 MIN_STEADY_CONFIGS = 6
 #: Partial-file format marker.
+#: Below this share of a core (the run's thread CPU time over its wall time) the host is
+#: called busy: other processes took the rest, and every timed value waited for them.
+BUSY_SHARE = 0.8
+
 PARTIAL_FORMAT = "gridcal-partial-run"
 PARTIAL_VERSION = 1
 
@@ -611,6 +621,32 @@ def refit_calibration(cal, *, seed: int = 0) -> tuple[dict, list]:
     return new, warnings
 
 
+def cpu_share(wall_s: float, cpu_s: float) -> float:
+    """The share of one core a thread had: its CPU time over the wall time (1 on a quiet host)."""
+    return cpu_s / wall_s if wall_s > 0 else 1.0
+
+
+def busy_note(share: float) -> str:
+    """Half a sentence on a busy host, or "" when the run had (nearly) a core of its own."""
+    if share >= BUSY_SHARE:
+        return ""
+    return (f"this run's thread had {100 * share:.0f}% of a core (the host is busy: other processes "
+            f"took the rest)")
+
+
+def not_fitted_message(exc, *, budget_s: float, set_up_s: float, configs, timings: dict, share: float,
+                       out: Path, part: Path) -> str:
+    """Why a run that fitted nothing ends, and how to continue from what it measured."""
+    context = [c.name for c in configs if c.kind == "in_context"]
+    measured = sum(1 for name in context if name in timings and len(timings[name].values_ns))
+    busy = busy_note(share)
+    return (f"the measurements could not be fitted within the {budget_s:g} s budget ({exc}): building "
+            f"the suites took {set_up_s:.0f} s, and {measured} of {len(context)} in-context configurations "
+            f"had values when the time kept for fitting began" + (f"; {busy}" if busy else "") +
+            f". The values measured are kept in {part}: `calibrate run --resume --out {out} "
+            f"--budget {2 * budget_s:g}` continues from them")
+
+
 def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
                     target_rel_width: float | None = DEFAULT_TARGET_REL_WIDTH,
                     intersector: str = "watertight", seed: int = 0, resume: bool = False,
@@ -646,6 +682,7 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
     status = status or (lambda text: None)
     t_start = time.monotonic() if started is None else float(started)
     deadline = t_start + budget_s
+    wall_here, cpu_here = time.monotonic(), time.thread_time()
     warnings: list = []
 
     cache, l2_source = cache_bytes()
@@ -654,6 +691,7 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
     with pin_to_one_core() as pin:
         status("building grids and counting work with the instrumented twin")
         configs = suites.isolated_configs(intersector, seed) + suites.context_configs(intersector, seed)
+        set_up_s = time.monotonic() - wall_here
         timings = _load_partial(part, seed, intersector, configs) if resume else {}
         held = holdout_names(configs, seed)
         runs = {c.name: c.run for c in configs}
@@ -693,7 +731,9 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
                     rounds += STAGE_ROUNDS
                     continue
                 if last_fit is None:
-                    raise UserError(f"the measurements could not be fitted within the budget: {exc}") from None
+                    share = cpu_share(time.monotonic() - wall_here, time.thread_time() - cpu_here)
+                    raise UserError(not_fitted_message(exc, budget_s=budget_s, set_up_s=set_up_s, configs=configs,
+                                                       timings=timings, share=share, out=out, part=part)) from None
                 # A later stage's data can fit worse than an earlier one's (e.g. with many repeats a
                 # small misfit makes a constant's interval reach towards 0): keep the last fit that
                 # worked, with the measurements it was made from, and say so.
@@ -745,6 +785,10 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
             warnings.append(f"the budget ended the last stage early: {cut} of {len(recs)} configurations have "
                             f"fewer than the {rounds} values it asked for ({lengths[0]}-{lengths[-1]}; all are used)")
         wall = time.monotonic() - t_start
+        share = cpu_share(time.monotonic() - wall_here, time.thread_time() - cpu_here)
+        if busy_note(share):
+            warnings.append(f"{busy_note(share)}: its values waited for them, so the constants are slower and "
+                            f"their intervals wider than a quiet host's")
         meta = dict(tool="gridcal", budget_s=budget_s, target_rel_width=target_rel_width, seed=seed,
                     intersector=intersector, wall_s=wall, stages=stage, rounds=rounds,
                     holdout_fraction=HOLDOUT_FRACTION, holdout_mare=mare, holdout_mare_pooled=mare_pooled,
@@ -754,7 +798,7 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
                     rays_per_batch=suites.RAYS_PER_BATCH, context_rays_per_batch=suites.CONTEXT_RAYS_PER_BATCH,
                     min_value_ns=MIN_VALUE_NS,
                     cache_bytes=cache, cache_source=cache_source, cache_candidates=candidates,
-                    line_weights=line_weights())
+                    line_weights=line_weights(), cpu_share=share)
         if cache_scores is not None:
             meta["cache_scores"] = {str(c): (v if math.isfinite(v) else None) for c, v in cache_scores.items()}
         if skipped:

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from calibrate import calfile, run, suites
+from calibrate._io import UserError
 from calibrate.cli import main
 from calibrate.protocol import Copies, MeasurementInterrupted
 from models.memory import lines_beyond_cache
@@ -417,6 +418,10 @@ def test_a_failed_last_stage_keeps_the_last_fit_that_worked(small_suite, tmp_pat
         def monotonic():
             return clock["t"]
 
+        @staticmethod
+        def thread_time():
+            return clock["t"]
+
     def fake_measure(runs, *, rounds, into, **_):
         for name in runs:
             m = into.setdefault(name, Measurement(loops=1))
@@ -482,9 +487,57 @@ def test_fit_reserve_grows_with_the_last_stages_fitting_time():
     assert run.post_fit_reserve(8.0) > run.POST_FIT_MIN_S
 
 
+def test_busy_host_share_and_note():
+    assert run.cpu_share(10.0, 9.9) == pytest.approx(0.99)
+    assert run.cpu_share(0.0, 0.0) == 1.0
+    assert run.busy_note(run.BUSY_SHARE) == ""
+    assert "had 50% of a core (the host is busy" in run.busy_note(0.5)
+
+
+def test_a_run_that_measures_no_context_configuration_says_why_and_how_to_go_on(small_suite, tmp_path,
+                                                                                   monkeypatch):
+    """A host so busy that the budget ends before the in-context suite is measured: the run
+    ends with one message naming the in-context configurations measured (none), the share of
+    a core the run had and the command that continues it; the partial file keeps the values."""
+    from calibrate.protocol import Measurement
+
+    isolated = {c.name for c in suites.isolated_configs("watertight", 0)}
+    clock = {"t": 0.0, "cpu": 0.0}
+
+    class FakeTime:
+        @staticmethod
+        def monotonic():
+            return clock["t"]
+
+        @staticmethod
+        def thread_time():
+            return clock["cpu"]
+
+    def fake_measure(runs, *, rounds, into, deadline, **_):
+        for name in runs:
+            if name in isolated:  # the isolating suites are all the budget allowed
+                m = into.setdefault(name, Measurement(loops=1))
+                m.values_ns.extend([1e6] * rounds)
+        clock["cpu"] += 0.4 * (deadline - clock["t"])  # other processes took the rest of the core
+        clock["t"] = deadline
+
+    monkeypatch.setattr(run, "time", FakeTime)
+    monkeypatch.setattr(run, "measure", fake_measure)
+    out = tmp_path / "cal.json"
+    with pytest.raises(UserError) as err:
+        run.run_calibration(out, budget_s=60, seed=0)
+    text = str(err.value)
+    n_context = len(suites.context_configs("watertight", 0))
+    assert "within the 60 s budget" in text and f"0 of {n_context} in-context configurations" in text, text
+    assert "had 40% of a core (the host is busy" in text, text
+    assert f"calibrate run --resume --out {out} --budget 120" in text, text
+    assert run.partial_path(out).exists() and not out.exists()
+
+
 def test_slow_fits_end_measuring_earlier(small_suite, tmp_path, monkeypatch):
     """A host whose fits are slow keeps more of the budget for them: the second stage stops
-    measuring at the budget less the reserve estimated from the first stage's fitting time."""
+    measuring at the budget less the reserve estimated from the first stage's fitting time.
+    A busy host is said so, with the share of a core the run had."""
     from calibrate.protocol import Measurement
 
     configs = suites.isolated_configs("watertight", 0) + suites.context_configs("watertight", 0)
@@ -498,6 +551,10 @@ def test_slow_fits_end_measuring_earlier(small_suite, tmp_path, monkeypatch):
         @staticmethod
         def monotonic():
             return clock["t"]
+
+        @staticmethod
+        def thread_time():
+            return 0.5 * clock["t"]  # and a busy host: the run's thread had half a core
 
     def fake_measure(runs, *, rounds, into, deadline, **_):
         deadlines.append(deadline)
@@ -517,7 +574,9 @@ def test_slow_fits_end_measuring_earlier(small_suite, tmp_path, monkeypatch):
     monkeypatch.setattr(run, "time", FakeTime)
     monkeypatch.setattr(run, "measure", fake_measure)
     monkeypatch.setattr(run, "_fit_stage", slow_fit_stage)
-    run.run_calibration(tmp_path / "cal.json", budget_s=120, target_rel_width=1e-9, seed=0)
+    result = run.run_calibration(tmp_path / "cal.json", budget_s=120, target_rel_width=1e-9, seed=0)
+    assert any(w.startswith("this run's thread had 50% of a core (the host is busy") for w in result.warnings)
+    assert calfile.load(tmp_path / "cal.json")["meta"]["cpu_share"] == pytest.approx(0.5)
     reserve = run.fit_reserve(10.0, 10.0)
     assert reserve > run.FIT_RESERVE_S
     assert deadlines == [pytest.approx(120 - run.FIT_RESERVE_S), pytest.approx(120 - reserve)]
