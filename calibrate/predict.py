@@ -200,7 +200,13 @@ OCCUPANCY_AXIS_SCALES = (0.5, 2.0 ** -0.5, 2.0 ** 0.5)
 #: (`cylinder196` 11x11x23, 14 a triangle, against the sample's 0.25), where its walks change
 #: occupancy (0.78 a ray there, none in every grid up to 3x3x16); left out past
 #: TERMINATION_MAX_REFS as above, or past CHANGES_MAX_CELLS cells (a big mesh's plans have
-#: fewer cells a triangle than the sample's grid at twice its cells an axis).
+#: fewer cells a triangle than the sample's grid at twice its cells an axis).  Their occupied
+#: cells are kept too (models.general.occupancy_scale): a flat mesh's sample grids are one cell
+#: thick and more than half occupied, which says nothing of how its sheets share cells, and its
+#: plans lie among these (the CAD tray: sample 50x1x50, its grids three to five cells thick
+#: counted 15-23% too few occupied cells by the even spread, now within 8%; two cells thick,
+#: more than half occupied, 20% too few against 31%; docs/compare.md, "The finer grids'
+#: occupied cells").
 CHANGES_AXIS_SCALES = (2.0, 4.0)
 CHANGES_MAX_CELLS = 2 ** 18
 
@@ -511,7 +517,8 @@ def sample_termination(scene: Scene, rays: int = TERMINATION_RAYS, seed: int = T
     :func:`models.general.occupancy_scale` interpolates (40-60 ms more on the 70,000- to
     86,000-triangle scans, against 9 ms for the one grid), and the changes of occupancy per
     ray on each of those grids and on the finer ones of CHANGES_AXIS_SCALES
-    (:func:`models.general.occupancy_changes`; 40-100 ms more on the scans).
+    (:func:`models.general.occupancy_changes`; 40-100 ms more on the scans), whose occupied
+    cells join the others'.
     """
     from . import rays as _rays_mod
 
@@ -544,7 +551,10 @@ def sample_termination(scene: Scene, rays: int = TERMINATION_RAYS, seed: int = T
         if (other == res or other[0] * other[1] * other[2] > CHANGES_MAX_CELLS
                 or expected_refs(scene.stats, other) > TERMINATION_MAX_REFS):
             continue
-        changes.append((other, float(Grid.uniform(scene, other).count(o, d, changes=True)[-1].mean())))
+        g = Grid.uniform(scene, other)
+        occupancy.append((other, _occupied_cells(g)))
+        changes.append((other, float(g.count(o, d, changes=True)[-1].mean())))
+        del g
     return TerminationSample(fraction=fraction, p_hit=float(np.mean(np.isfinite(t_hit))), rays=int(rays),
                              resolution=res, occupied=occupied, visits=visits, occupancy=tuple(occupancy),
                              changes=tuple(changes))
