@@ -403,6 +403,22 @@ def test_subgrids_that_cost_nothing_give_no_estimate_and_say_so():
     assert "costs no more than a cell step" in warning
 
 
+def fake_time(clock: dict, cpu=lambda c: c["t"]):
+    """A stand-in for calibrate.run's time module: the wall clock is clock["t"], the run's
+    thread clock cpu(clock) (the same: a quiet host)."""
+
+    class FakeTime:
+        @staticmethod
+        def monotonic():
+            return clock["t"]
+
+        @staticmethod
+        def thread_time():
+            return cpu(clock)
+
+    return FakeTime
+
+
 def test_a_failed_last_stage_keeps_the_last_fit_that_worked(small_suite, tmp_path, monkeypatch):
     """The budget ends on a stage whose fit fails: the run keeps the previous stage's fit and data."""
     from calibrate.protocol import Measurement
@@ -412,15 +428,6 @@ def test_a_failed_last_stage_keeps_the_last_fit_that_worked(small_suite, tmp_pat
     truth = {c.name: sum(planted[k] * c.record()[k] for k in planted) for c in configs}
     rng = np.random.default_rng(0)
     clock = {"t": 0.0}
-
-    class FakeTime:
-        @staticmethod
-        def monotonic():
-            return clock["t"]
-
-        @staticmethod
-        def thread_time():
-            return clock["t"]
 
     def fake_measure(runs, *, rounds, into, **_):
         for name in runs:
@@ -439,7 +446,7 @@ def test_a_failed_last_stage_keeps_the_last_fit_that_worked(small_suite, tmp_pat
             raise ValueError("planted failure")
         return real_fit_stage(recs, seed, isolated, deadline)
 
-    monkeypatch.setattr(run, "time", FakeTime)
+    monkeypatch.setattr(run, "time", fake_time(clock))
     monkeypatch.setattr(run, "measure", fake_measure)
     monkeypatch.setattr(run, "_fit_stage", fit_stage)
     out = tmp_path / "cal.json"
@@ -504,15 +511,6 @@ def test_a_run_that_measures_no_context_configuration_says_why_and_how_to_go_on(
     isolated = {c.name for c in suites.isolated_configs("watertight", 0)}
     clock = {"t": 0.0, "cpu": 0.0}
 
-    class FakeTime:
-        @staticmethod
-        def monotonic():
-            return clock["t"]
-
-        @staticmethod
-        def thread_time():
-            return clock["cpu"]
-
     def fake_measure(runs, *, rounds, into, deadline, **_):
         for name in runs:
             if name in isolated:  # the isolating suites are all the budget allowed
@@ -521,7 +519,7 @@ def test_a_run_that_measures_no_context_configuration_says_why_and_how_to_go_on(
         clock["cpu"] += 0.4 * (deadline - clock["t"])  # other processes took the rest of the core
         clock["t"] = deadline
 
-    monkeypatch.setattr(run, "time", FakeTime)
+    monkeypatch.setattr(run, "time", fake_time(clock, lambda c: c["cpu"]))
     monkeypatch.setattr(run, "measure", fake_measure)
     out = tmp_path / "cal.json"
     with pytest.raises(UserError) as err:
@@ -547,15 +545,6 @@ def test_slow_fits_end_measuring_earlier(small_suite, tmp_path, monkeypatch):
     clock = {"t": 0.0}
     deadlines = []
 
-    class FakeTime:
-        @staticmethod
-        def monotonic():
-            return clock["t"]
-
-        @staticmethod
-        def thread_time():
-            return 0.5 * clock["t"]  # and a busy host: the run's thread had half a core
-
     def fake_measure(runs, *, rounds, into, deadline, **_):
         deadlines.append(deadline)
         for name in runs:
@@ -571,7 +560,7 @@ def test_slow_fits_end_measuring_earlier(small_suite, tmp_path, monkeypatch):
         clock["t"] += 10.0  # a pooled fit that takes 10 s
         return real_fit_stage(recs, seed, isolated, deadline)
 
-    monkeypatch.setattr(run, "time", FakeTime)
+    monkeypatch.setattr(run, "time", fake_time(clock, lambda c: 0.5 * c["t"]))  # and a busy host: half a core
     monkeypatch.setattr(run, "measure", fake_measure)
     monkeypatch.setattr(run, "_fit_stage", slow_fit_stage)
     result = run.run_calibration(tmp_path / "cal.json", budget_s=120, target_rel_width=1e-9, seed=0)
