@@ -127,11 +127,10 @@ STEADY_TESTS_PER_RAY = 32.0
 #: Fewest configurations an isolating fit takes (two for each of up to three constants):
 #: when fewer are steady, those with the longest walks or lists, and a warning.
 MIN_STEADY_CONFIGS = 6
-#: Partial-file format marker.
 #: Below this share of a core (the run's thread CPU time over its wall time) the host is
 #: called busy: other processes took the rest, and every timed value waited for them.
 BUSY_SHARE = 0.8
-
+#: Partial-file format marker.
 PARTIAL_FORMAT = "gridcal-partial-run"
 PARTIAL_VERSION = 1
 
@@ -635,15 +634,19 @@ def busy_note(share: float) -> str:
 
 
 def not_fitted_message(exc, *, budget_s: float, set_up_s: float, configs, timings: dict, share: float,
-                       out: Path, part: Path) -> str:
-    """Why a run that fitted nothing ends, and how to continue from what it measured."""
+                       out: Path, part: Path, seed: int = 0, intersector: str = "watertight") -> str:
+    """Why a run that fitted nothing ends, and how to continue from what it measured (the
+    command names the seed and the intersector when they are not the defaults: a partial
+    file resumes only with its own)."""
     context = [c.name for c in configs if c.kind == "in_context"]
     measured = sum(1 for name in context if name in timings and len(timings[name].values_ns))
     busy = busy_note(share)
+    same = (f" --seed {seed}" if seed != 0 else "") + (f" --intersector {intersector}"
+                                                      if intersector != "watertight" else "")
     return (f"the measurements could not be fitted within the {budget_s:g} s budget ({exc}): building "
             f"the suites took {set_up_s:.0f} s, and {measured} of {len(context)} in-context configurations "
             f"had values when the time kept for fitting began" + (f"; {busy}" if busy else "") +
-            f". The values measured are kept in {part}: `calibrate run --resume --out {out} "
+            f". The values measured are kept in {part}: `calibrate run --resume --out {out}{same} "
             f"--budget {2 * budget_s:g}` continues from them")
 
 
@@ -733,7 +736,8 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
                 if last_fit is None:
                     share = cpu_share(time.monotonic() - wall_here, time.thread_time() - cpu_here)
                     raise UserError(not_fitted_message(exc, budget_s=budget_s, set_up_s=set_up_s, configs=configs,
-                                                       timings=timings, share=share, out=out, part=part)) from None
+                                                       timings=timings, share=share, out=out, part=part,
+                                                       seed=seed, intersector=intersector)) from None
                 # A later stage's data can fit worse than an earlier one's (e.g. with many repeats a
                 # small misfit makes a constant's interval reach towards 0): keep the last fit that
                 # worked, with the measurements it was made from, and say so.

@@ -532,6 +532,23 @@ def test_a_run_that_measures_no_context_configuration_says_why_and_how_to_go_on(
     assert run.partial_path(out).exists() and not out.exists()
 
 
+def test_the_resume_command_names_a_runs_own_seed_and_intersector():
+    from types import SimpleNamespace
+
+    from calibrate.protocol import Measurement
+
+    configs = [SimpleNamespace(name="a", kind="in_context"), SimpleNamespace(name="b", kind="in_context"),
+               SimpleNamespace(name="c", kind="isolated")]
+    timings = {"a": Measurement(loops=1), "c": Measurement(loops=1)}
+    timings["a"].values_ns.append(1e6)
+    common = dict(budget_s=30, set_up_s=3.2, configs=configs, timings=timings, share=0.99,
+                  out=Path("o.json"), part=Path("o.json.partial"))
+    text = run.not_fitted_message("nothing to fit", **common, seed=7, intersector="moller-trumbore")
+    assert "1 of 2 in-context configurations" in text and "busy" not in text
+    assert "`calibrate run --resume --out o.json --seed 7 --intersector moller-trumbore --budget 60`" in text
+    assert "`calibrate run --resume --out o.json --budget 60`" in run.not_fitted_message("x", **common)
+
+
 def test_slow_fits_end_measuring_earlier(small_suite, tmp_path, monkeypatch):
     """A host whose fits are slow keeps more of the budget for them: the second stage stops
     measuring at the budget less the reserve estimated from the first stage's fitting time.
