@@ -686,6 +686,10 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
     t_start = time.monotonic() if started is None else float(started)
     deadline = t_start + budget_s
     wall_here, cpu_here = time.monotonic(), time.thread_time()
+
+    def share_so_far() -> float:
+        return cpu_share(time.monotonic() - wall_here, time.thread_time() - cpu_here)
+
     warnings: list = []
 
     cache, l2_source = cache_bytes()
@@ -734,9 +738,8 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
                     rounds += STAGE_ROUNDS
                     continue
                 if last_fit is None:
-                    share = cpu_share(time.monotonic() - wall_here, time.thread_time() - cpu_here)
                     raise UserError(not_fitted_message(exc, budget_s=budget_s, set_up_s=set_up_s, configs=configs,
-                                                       timings=timings, share=share, out=out, part=part,
+                                                       timings=timings, share=share_so_far(), out=out, part=part,
                                                        seed=seed, intersector=intersector)) from None
                 # A later stage's data can fit worse than an earlier one's (e.g. with many repeats a
                 # small misfit makes a constant's interval reach towards 0): keep the last fit that
@@ -789,9 +792,10 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
             warnings.append(f"the budget ended the last stage early: {cut} of {len(recs)} configurations have "
                             f"fewer than the {rounds} values it asked for ({lengths[0]}-{lengths[-1]}; all are used)")
         wall = time.monotonic() - t_start
-        share = cpu_share(time.monotonic() - wall_here, time.thread_time() - cpu_here)
-        if busy_note(share):
-            warnings.append(f"{busy_note(share)}: its values waited for them, so the constants are slower and "
+        share = share_so_far()
+        busy = busy_note(share)
+        if busy:
+            warnings.append(f"{busy}: its values waited for them, so the constants are slower and "
                             f"their intervals wider than a quiet host's")
         meta = dict(tool="gridcal", budget_s=budget_s, target_rel_width=target_rel_width, seed=seed,
                     intersector=intersector, wall_s=wall, stages=stage, rounds=rounds,
