@@ -101,6 +101,30 @@ def positive_number(what: str = "the value"):
     return parse
 
 
+#: Binary multiples a byte size may end with (``--cache 16MiB``, ``12M``, ``512k``).
+BYTE_UNITS = {"": 1, "b": 1, "k": 2**10, "kib": 2**10, "m": 2**20, "mib": 2**20, "g": 2**30, "gib": 2**30}
+
+
+def byte_size(text: str) -> int:
+    """An argparse type: a number of bytes, as bytes or with a binary unit (k/KiB, M/MiB, G/GiB),
+    at least a cache line (64 bytes) and under 2^50."""
+    t = text.strip()
+    i = len(t)
+    while i > 0 and t[i - 1].isalpha():
+        i -= 1
+    number, unit = t[:i].strip(), t[i:].lower()
+    if unit not in BYTE_UNITS:
+        raise argparse.ArgumentTypeError(f"the size's unit must be one of k, KiB, M, MiB, G, GiB (or none: bytes), "
+                                         f"got {text!r}")
+    try:
+        x = float(number) * BYTE_UNITS[unit]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"the size must be a number of bytes, e.g. 16MiB, got {text!r}") from None
+    if not (math.isfinite(x) and 64 <= x < 2**50):
+        raise argparse.ArgumentTypeError(f"the size must be from 64 bytes to under 1 PiB, got {text!r}")
+    return int(round(x))
+
+
 def seed_number(text: str) -> int:
     """An argparse type: a random seed, a whole number from 0 to 2^32 - 1."""
     try:
@@ -261,7 +285,7 @@ def cmd_fit(args) -> int:
     from .run import refit_calibration
 
     with _Progress(not args.quiet, "fitting") as _:
-        new, warnings = refit_calibration(cal, seed=args.seed)
+        new, warnings = refit_calibration(cal, seed=args.seed, cache_bytes=args.cache)
     calfile.save(out, new)
     meta = new.get("meta", {})
     if args.json:
@@ -392,6 +416,9 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("file", nargs="?", default=DEFAULT_CALIBRATION)
     sp.add_argument("--out", metavar="FILE", help="write here instead of replacing FILE")
     sp.add_argument("--seed", type=seed_number, default=0)
+    sp.add_argument("--cache", type=byte_size, metavar="SIZE",
+                    help="count the memory term's lines against this cache size (e.g. 16MiB) instead of the one "
+                         "the run chose, and fit again")
     sp.set_defaults(func=cmd_fit)
 
     sp = verb("show", "print a calibration's constants; --plot writes a corner plot, residuals and the isolating suites")

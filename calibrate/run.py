@@ -579,18 +579,37 @@ def _finish(result, recs, seed, priors, warnings, deadline=None):
     return by_rays, skipped, _holdout(result, by_rays, recs), _cross_validated(result, by_rays, recs, seed, priors)
 
 
-def refit_calibration(cal, *, seed: int = 0) -> tuple[dict, list]:
+def refit_calibration(cal, *, seed: int = 0, cache_bytes: int | None = None) -> tuple[dict, list]:
     """``calibrate fit``: a run's fits again on a calibration's stored measurements, by this
     version's code (the in-context records' ``misses`` counted again against the file's cache
     size by this version's memory model): the isolating suites (their constants give the in-context priors; a file
     without their measurements keeps its stored priors), the pooled fit, each ray set's, and
     the held-back and cross-validated errors the file reports (``meta``), so that they describe
-    the new fit, not the old one.  Returns (validated calibration, warnings)."""
+    the new fit, not the old one.
+
+    ``cache_bytes`` (``calibrate fit --cache``): count the in-context records' lines beyond a
+    cache of that many bytes instead of the file's, and record it (``meta.cache_bytes``,
+    ``meta.cache_source``); the run's scores of the sizes it tried stay in ``meta.cache_scores``.
+    The cache the suite's timings fit best need not be the one whose plans are best: on this
+    project's 2-core EPYC host, two runs that chose 8 and 16 MiB both planned best refitted at
+    16 MiB (docs/calibration.md, "Shorter values, half an octave of cache, and r from run to
+    run").  Returns (validated calibration, warnings)."""
     cal = calfile.validate(calfile._plain(cal))
     recs = calfile.apply_drift(cal["measurements"])
     cache = calfile.cache_bytes_of(cal)
     ctx = [r for r in recs if r["kind"] == "in_context"]
-    if cache is not None and ctx and all("misses" in r and "memory_bytes" in r for r in ctx):
+    if cache_bytes is not None:
+        cache_bytes = int(cache_bytes)
+        if cache_bytes <= 0:
+            raise UserError(f"the cache size must be a positive number of bytes, got {cache_bytes}")
+        lacking = sum(1 for r in ctx if "memory_bytes" not in r)
+        if not ctx or lacking:
+            raise UserError(f"--cache: {lacking or 'no'} of the file's {len(ctx)} in-context measurements record their "
+                            f"grid's bytes (memory_bytes), so their cache lines cannot be counted against another "
+                            f"cache; this file was written before the memory term (run `calibrate run` again)")
+        cache = cache_bytes
+        recs = with_cache(recs, cache)
+    elif cache is not None and ctx and all("misses" in r and "memory_bytes" in r for r in ctx):
         # the memory effect's count by this version's model: a file written before the spread of
         # cache sizes (models.memory, 2026-12-06) carries one cache's counts
         recs = with_cache(recs, cache)
@@ -613,6 +632,8 @@ def refit_calibration(cal, *, seed: int = 0) -> tuple[dict, list]:
                     holdout_mare_by_rays=mare_by_rays, cv_mare=None if math.isnan(cv) else cv,
                     cv_mare_by_rays=cv_by_rays)
     meta.update(ratio_rel_width=_rel_width(result), refit_seed=seed, line_weights=line_weights())
+    if cache_bytes is not None:
+        meta.update(cache_bytes=cache, cache_source=f"set by `calibrate fit --cache` ({cache} bytes)")
     if skipped:
         meta["by_rays_skipped"] = skipped
     new = calfile.from_fit(result, fingerprint=cal["fingerprint"], measurements=recs, isolated=isolated, meta=meta,

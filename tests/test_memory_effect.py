@@ -379,6 +379,57 @@ def test_a_refit_records_the_line_weights_it_fitted_with(planted):
     assert calfile.line_weights_of(cal) is None
 
 
+def test_calibrate_fit_counts_the_lines_against_a_cache_given_by_hand(planted):
+    """`calibrate fit --cache SIZE`: the in-context records' lines beyond the cache are counted
+    against SIZE, the file says so, and refitting at the planted cache after a wrong one
+    recovers the planted constants (the size given is the one the fit used)."""
+    from calibrate import run
+    from calibrate._io import UserError
+
+    recs, _, cal = planted
+    wrong, _ = run.refit_calibration(cal, seed=0, cache_bytes=8 * CACHE)
+    assert calfile.cache_bytes_of(wrong) == 8 * CACHE and "calibrate fit --cache" in wrong["meta"]["cache_source"]
+    ctx = [m for m in wrong["measurements"] if m["kind"] == "in_context"]
+    assert [m["misses"] for m in ctx] == pytest.approx(
+        [float(lines_beyond_cache(r["steps"], r["tests"], r["memory_bytes"], 8 * CACHE)) for r in recs])
+    assert [m["misses"] for m in ctx] != pytest.approx([r["misses"] for r in recs])
+    right, _ = run.refit_calibration(wrong, seed=0, cache_bytes=CACHE)
+    assert calfile.cache_bytes_of(right) == CACHE
+    assert [m["misses"] for m in right["measurements"] if m["kind"] == "in_context"] == pytest.approx(
+        [r["misses"] for r in recs])
+    for name in ("t_step_ns", "t_int_ns", "t_mem_ns"):
+        c = right["constants"][name]
+        assert c["median"] == pytest.approx(TRUTH[name], rel=0.1) and c["ci95"][0] <= TRUTH[name] <= c["ci95"][1]
+    # a file whose records do not say their grid's bytes cannot be counted against another cache
+    old = json.loads(json.dumps(cal))
+    for m in old["measurements"]:
+        m.pop("memory_bytes", None)
+        m.pop("misses", None)
+    old["constants"].pop("t_mem_ns", None)
+    with pytest.raises(UserError, match="memory_bytes"):
+        run.refit_calibration(old, seed=0, cache_bytes=CACHE)
+
+
+@pytest.mark.parametrize("text, want", [("16MiB", 16 << 20), ("16M", 16 << 20), ("11.3 MiB", round(11.3 * 2**20)),
+                                        ("512k", 512 << 10), ("1GiB", 1 << 30), ("4096", 4096), ("64b", 64)])
+def test_cache_sizes_are_read_in_bytes_or_binary_units(text, want):
+    from calibrate.cli import byte_size
+
+    assert byte_size(text) == want
+
+
+@pytest.mark.parametrize("text, said", [("16XB", "unit"), ("MiB", "number"), ("-1MiB", "from 64 bytes"),
+                                        ("0", "from 64 bytes"), ("nanM", "unit"), ("1e400", "from 64 bytes"),
+                                        ("2e20", "from 64 bytes")])
+def test_bad_cache_sizes_are_refused_with_a_reason(text, said):
+    import argparse
+
+    from calibrate.cli import byte_size
+
+    with pytest.raises(argparse.ArgumentTypeError, match=said):
+        byte_size(text)
+
+
 def _mutated(cal, fn):
     bad = json.loads(json.dumps(cal))
     fn(bad)
