@@ -294,7 +294,7 @@ def cmd_fit(args) -> int:
                          constants_by_rays=_constants_by_rays(new),
                          constants_isolated=new.get("isolated") or {},
                          holdout_mare=meta.get("holdout_mare"), cv_mare=meta.get("cv_mare"),
-                         warnings=warnings, out=str(out)))
+                         cache_bytes=calfile.cache_bytes_of(new), warnings=warnings, out=str(out)))
     else:
         console = _console()
         console.print(_constants_table(new, f"re-fit of {src.name}"))
@@ -306,6 +306,8 @@ def cmd_fit(args) -> int:
                           f"(pooled constants: {100 * meta['holdout_mare_pooled']:.1f}%)")
         if meta.get("cv_mare") is not None:
             console.print(f"cross-validated ({meta.get('cv_folds', 5)} folds): {100 * meta['cv_mare']:.1f}%")
+        if args.cache is not None:
+            console.print(f"cache lines counted against {args.cache / 2**20:.4g} MiB (--cache)")
         console.print(f"written to {out}")
         _print_warnings(warnings)
     return 0

@@ -410,6 +410,21 @@ def test_calibrate_fit_counts_the_lines_against_a_cache_given_by_hand(planted):
         run.refit_calibration(old, seed=0, cache_bytes=CACHE)
 
 
+def test_calibrate_fit_cache_on_the_command_line(planted, tmp_path, capsys):
+    """`calibrate fit FILE --cache 3MiB --out NEW --json`: NEW counts the lines against 3 MiB and
+    the JSON says so; FILE is left as it was."""
+    from calibrate.cli import main
+
+    _, _, cal = planted
+    src, out = tmp_path / "cal.json", tmp_path / "c3.json"
+    calfile.save(src, cal)
+    before = src.read_bytes()
+    assert main(["fit", str(src), "--cache", "3MiB", "--out", str(out), "--json", "--quiet"]) == 0
+    said = json.loads(capsys.readouterr().out)
+    assert said["cache_bytes"] == 3 << 20 == calfile.cache_bytes_of(calfile.load(out))
+    assert src.read_bytes() == before and calfile.cache_bytes_of(calfile.load(src)) == CACHE
+
+
 @pytest.mark.parametrize("text, want", [("16MiB", 16 << 20), ("16M", 16 << 20), ("11.3 MiB", round(11.3 * 2**20)),
                                         ("512k", 512 << 10), ("1GiB", 1 << 30), ("4096", 4096), ("64b", 64)])
 def test_cache_sizes_are_read_in_bytes_or_binary_units(text, want):
