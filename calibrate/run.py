@@ -591,9 +591,9 @@ def refit_calibration(cal, *, seed: int = 0, cache_bytes: int | None = None) -> 
     cache of that many bytes instead of the file's, and record it (``meta.cache_bytes``,
     ``meta.cache_source``); the run's scores of the sizes it tried stay in ``meta.cache_scores``.
     The cache the suite's timings fit best need not be the one whose plans are best: on this
-    project's 2-core EPYC host, two runs that chose 8 and 16 MiB both planned best refitted at
-    16 MiB (docs/calibration.md, "Shorter values, half an octave of cache, and r from run to
-    run").  Returns (validated calibration, warnings)."""
+    project's 2-core EPYC host, three runs that chose 8, 8 and 16 MiB all planned within 3.6% of
+    their sweeps' best refitted at 16 MiB, and one of the 8 MiB ones 8.2% off as chosen
+    (docs/calibration.md, "Shorter values, half an octave of cache, and r from run to run").  Returns (validated calibration, warnings)."""
     cal = calfile.validate(calfile._plain(cal))
     recs = calfile.apply_drift(cal["measurements"])
     cache = calfile.cache_bytes_of(cal)
@@ -603,10 +603,13 @@ def refit_calibration(cal, *, seed: int = 0, cache_bytes: int | None = None) -> 
         if cache_bytes <= 0:
             raise UserError(f"the cache size must be a positive number of bytes, got {cache_bytes}")
         lacking = sum(1 for r in ctx if "memory_bytes" not in r)
-        if not ctx or lacking:
-            raise UserError(f"--cache: {lacking or 'no'} of the file's {len(ctx)} in-context measurements record their "
+        if not ctx:
+            raise UserError("--cache: the file holds no in-context measurements, so no cache lines can be counted "
+                            "against another cache")
+        if lacking:
+            raise UserError(f"--cache: {lacking} of the file's {len(ctx)} in-context measurements do not record their "
                             f"grid's bytes (memory_bytes), so their cache lines cannot be counted against another "
-                            f"cache; this file was written before the memory term (run `calibrate run` again)")
+                            f"cache (a file written before the memory term: run `calibrate run` again)")
         cache = cache_bytes
         recs = with_cache(recs, cache)
     elif cache is not None and ctx and all("misses" in r and "memory_bytes" in r for r in ctx):
