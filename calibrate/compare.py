@@ -392,7 +392,14 @@ def _check_points(points) -> int:
 
 
 def summarise(results: list[dict]) -> dict:
-    """Median and worst penalty of the prediction and of each baseline over scenes."""
+    """Median and worst penalty of the prediction and of each baseline over scenes; for the
+    prediction also ``worst_sure``, the highest lower end of a scene's 95% interval, and its
+    ``worst_sure_scene`` (None without intervals).
+
+    The worst penalty over many scenes is the largest of many noisy ratios: on this project's
+    2-core EPYC host one plan (the teapot's 28x15x17) measured +0.0% to +1.4% in four sweeps and
+    +3.6% [-0.6, +7.5] in a fifth (docs/compare.md, "Which cache the plans want").  The lower end
+    says how much of the worst the sweep is sure of."""
     def stats(values):
         v = [x for x in values if x is not None]
         return dict(median=float(np.median(v)) if v else None, worst=float(max(v)) if v else None, scenes=len(v))
@@ -400,7 +407,12 @@ def summarise(results: list[dict]) -> dict:
     names = []
     for r in results:
         names.extend(n for n in r["baselines"] if n not in names)
-    return dict(predicted=stats([r["penalty"] for r in results]),
+    predicted = stats([r["penalty"] for r in results])
+    lows = [(r["penalty_ci95"][0], r["scene"]) for r in results
+            if r.get("penalty") is not None and r.get("penalty_ci95")]
+    sure = max(lows) if lows else (None, None)
+    predicted.update(worst_sure=None if sure[0] is None else float(sure[0]), worst_sure_scene=sure[1])
+    return dict(predicted=predicted,
                 baselines={n: stats([r["baselines"].get(n, {}).get("penalty") for r in results]) for n in names})
 
 
@@ -615,6 +627,9 @@ def _print_human(results, summary, plot_path) -> None:
         table.add_row("median", "", "", _pct(s["median"]), *(_pct(summary["baselines"][n]["median"]) for n in names))
         table.add_row("worst", "", "", _pct(s["worst"]), *(_pct(summary["baselines"][n]["worst"]) for n in names))
     console.print(table)
+    if len(results) > 1 and summary["predicted"].get("worst_sure") is not None:
+        console.print(f"the worst penalty the sweeps are sure of (the highest lower end of a 95% interval): "
+                      f"{_pct(summary['predicted']['worst_sure'])} ({summary['predicted']['worst_sure_scene']})")
     for r in results:
         console.print(f"{r['scene']}: predicted {r['predicted_time_ns']:.4g} ns/ray (MAD {r['predicted_mad_ns']:.2g}), "
                       f"measured best {r['best_measured_time_ns']:.4g} ns/ray at "

@@ -61,10 +61,29 @@ def test_json_has_every_field(short_run):
         lo, hi = p["predicted"]["ci95"]
         assert lo <= p["predicted"]["median"] <= hi
     assert doc["summary"]["predicted"]["scenes"] == 1
+    assert doc["summary"]["predicted"]["worst_sure"] == r["penalty_ci95"][0]
+    assert doc["summary"]["predicted"]["worst_sure_scene"] == "cylinder196"
     lo, hi = r["penalty_ci95"]
     assert lo <= hi and lo <= r["penalty"] + 1e-9 and r["penalty"] - 1e-9 <= hi + 0.05
     for name, b in r["baselines"].items():
         assert b["penalty_ci95"][0] <= b["penalty_ci95"][1], name
+
+
+def test_the_summary_says_the_worst_penalty_the_sweeps_are_sure_of():
+    """Planted scenes: the worst penalty is the largest, the sure one the highest lower end of an
+    interval (another scene's: a noisy +3.6% [-0.6, +7.5] is not sure of more than +1.8%)."""
+    from calibrate.compare import summarise
+
+    def scene(name, penalty, ci):
+        return dict(scene=name, penalty=penalty, penalty_ci95=ci, baselines={"pbrt-v2": dict(penalty=0.3)})
+
+    results = [scene("teapot", 0.036, [-0.006, 0.075]), scene("sponza", 0.024, [0.018, 0.031]),
+               scene("spot", -0.004, [-0.01, 0.002]), scene("no interval", 0.01, None)]
+    s = summarise(results)["predicted"]
+    assert s["worst"] == 0.036 and s["median"] == pytest.approx(0.017)
+    assert s["worst_sure"] == 0.018 and s["worst_sure_scene"] == "sponza"
+    s = summarise([scene("alone", 0.02, None)])["predicted"]
+    assert s["worst_sure"] is None and s["worst_sure_scene"] is None
 
 
 def test_measured_minimum_is_inside_the_sweep(short_run):

@@ -122,6 +122,9 @@ def main() -> None:
     s = summarise(results)
     print("\npenalty over scenes (%):      median    worst")
     print(f"  {'predicted':26s} {_pct(s['predicted']['median'])} {_pct(s['predicted']['worst'])}")
+    if s["predicted"]["worst_sure"] is not None:
+        print(f"  {'(the lower end of a 95% interval)':26s}         {_pct(s['predicted']['worst_sure'])}  "
+              f"({s['predicted']['worst_sure_scene']})")
     for n, b in s["baselines"].items():
         print(f"  {n:26s} {_pct(b['median'])} {_pct(b['worst'])}")
     if args.plot:
