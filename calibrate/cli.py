@@ -228,7 +228,7 @@ def cmd_run(args) -> int:
     with _Progress(not args.quiet, "measuring") as bar:
         result = run_calibration(out, budget_s=args.budget, target_rel_width=args.target_rel_width,
                                  intersector=args.intersector, seed=args.seed, resume=args.resume,
-                                 progress=bar, status=bar.status, started=t0)
+                                 progress=bar, status=bar.status, started=t0, cache_bytes=args.cache)
     cal = result.calibration
     if args.json:
         _print_warnings(result.warnings)
@@ -412,6 +412,9 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--intersector", default="watertight", choices=["watertight", "moller-trumbore"])
     sp.add_argument("--seed", type=seed_number, default=0)
     sp.add_argument("--resume", action="store_true", help="continue an interrupted run from FILE.partial")
+    sp.add_argument("--cache", type=byte_size, metavar="SIZE",
+                    help="the memory term's cache size (e.g. 16MiB) instead of the best fit among the sizes from "
+                         "the level-2 to the last-level cache")
     sp.set_defaults(func=cmd_run)
 
     sp = verb("fit", "re-fit a calibration file's stored measurements without measuring again")

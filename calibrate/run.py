@@ -29,7 +29,7 @@ from . import fit as _fit
 from ._io import UserError, atomic_write_text, check_writable
 from ._grid import intersector_code
 from models.memory import candidate_cache_sizes, line_weights, lines_beyond_cache
-from .host import cache_bytes, fingerprint, last_cache_bytes
+from .host import cache_bytes as host_cache_bytes, fingerprint, last_cache_bytes
 from .protocol import REL_SPREAD_WARN, Measurement, MeasurementInterrupted, measure, pin_to_one_core
 
 #: Default wall-clock budget of a run, seconds.
@@ -658,15 +658,17 @@ def busy_note(share: float) -> str:
 
 
 def not_fitted_message(exc, *, budget_s: float, set_up_s: float, configs, timings: dict, share: float,
-                       out: Path, part: Path, seed: int = 0, intersector: str = "watertight") -> str:
+                       out: Path, part: Path, seed: int = 0, intersector: str = "watertight",
+                       cache_bytes: int | None = None) -> str:
     """Why a run that fitted nothing ends, and how to continue from what it measured (the
     command names the seed and the intersector when they are not the defaults: a partial
-    file resumes only with its own)."""
+    file resumes only with its own; and the run's --cache when it had one)."""
     context = [c.name for c in configs if c.kind == "in_context"]
     measured = sum(1 for name in context if name in timings and len(timings[name].values_ns))
     busy = busy_note(share)
     same = (f" --seed {seed}" if seed != 0 else "") + (f" --intersector {intersector}"
                                                       if intersector != "watertight" else "")
+    same += f" --cache {cache_bytes}" if cache_bytes is not None else ""
     return (f"the measurements could not be fitted within the {budget_s:g} s budget ({exc}): building "
             f"the suites took {set_up_s:.0f} s, and {measured} of {len(context)} in-context configurations "
             f"had values when the time kept for fitting began" + (f"; {busy}" if busy else "") +
@@ -677,7 +679,8 @@ def not_fitted_message(exc, *, budget_s: float, set_up_s: float, configs, timing
 def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
                     target_rel_width: float | None = DEFAULT_TARGET_REL_WIDTH,
                     intersector: str = "watertight", seed: int = 0, resume: bool = False,
-                    progress=None, status=None, on_stage=None, started: float | None = None) -> RunResult:
+                    progress=None, status=None, on_stage=None, started: float | None = None,
+                    cache_bytes: int | None = None) -> RunResult:
     """Measure, fit, validate on held-back configurations, and save ``out`` atomically.
 
     progress(done, total, label) reports measuring; status(text) reports stages.
@@ -687,6 +690,10 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
     stages as the runs of shorter budgets).
     started : ``time.monotonic()`` at which the budget began (the command line passes its
     own start, so that the budget covers importing the fitting libraries); now when None.
+    cache_bytes : the memory term's cache size (``--cache``), instead of the best fit among the
+    sizes from the level-2 to the last-level cache (:func:`select_cache`): the size the suite's
+    timings fit best is not always the one whose plans are best (docs/compare.md, "Which cache
+    the plans want").
     Raises UserError for bad arguments, MeasurementInterrupted (after saving the
     partial file) on Ctrl-C, and fit errors when the data cannot be fitted.
     """
@@ -716,9 +723,15 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
 
     warnings: list = []
 
-    cache, l2_source = cache_bytes()
-    candidates = candidate_cache_sizes(cache, last_cache_bytes())
-    cache_source, cache_scores = l2_source, None
+    if cache_bytes is not None:
+        if isinstance(cache_bytes, bool) or not isinstance(cache_bytes, int) or cache_bytes <= 0:
+            raise UserError(f"the cache size must be a whole number of bytes > 0, got {cache_bytes!r}")
+        cache, candidates = cache_bytes, [cache_bytes]
+        cache_source, cache_scores = f"set by `calibrate run --cache` ({cache_bytes} bytes)", None
+    else:
+        cache, l2_source = host_cache_bytes()
+        candidates = candidate_cache_sizes(cache, last_cache_bytes())
+        cache_source, cache_scores = l2_source, None
     with pin_to_one_core() as pin:
         status("building grids and counting work with the instrumented twin")
         configs = suites.isolated_configs(intersector, seed) + suites.context_configs(intersector, seed)
@@ -764,7 +777,8 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
                 if last_fit is None:
                     raise UserError(not_fitted_message(exc, budget_s=budget_s, set_up_s=set_up_s, configs=configs,
                                                        timings=timings, share=share_so_far(), out=out, part=part,
-                                                       seed=seed, intersector=intersector)) from None
+                                                       seed=seed, intersector=intersector,
+                                                       cache_bytes=cache_bytes)) from None
                 # A later stage's data can fit worse than an earlier one's (e.g. with many repeats a
                 # small misfit makes a constant's interval reach towards 0): keep the last fit that
                 # worked, with the measurements it was made from, and say so.

@@ -321,6 +321,7 @@ CASES: list[Case] = [
     cli(OPTIONS, "resume with nothing to resume", "run --resume --out out.json", "no interrupted run to resume"),
     cli(OPTIONS, "seed that is not a number", "fit good.json --seed abc", "the seed must be a whole number"),
     cli(OPTIONS, "cache size in an unknown unit", "fit good.json --cache 16XB", "the size's unit must be one of"),
+    cli(OPTIONS, "cache size of zero", "run --cache 0", "the size must be from 64 bytes"),
     cli(OPTIONS, "cache size for a file whose records carry no grid sizes", "fit good.json --cache 16MiB",
         "cannot be counted against another cache"),
     cli(OPTIONS, "zero ratio", "predict --ratio 0", "must be a positive number"),

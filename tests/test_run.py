@@ -547,6 +547,28 @@ def test_the_resume_command_names_a_runs_own_seed_and_intersector():
     assert "1 of 2 in-context configurations" in text and "busy" not in text
     assert "`calibrate run --resume --out o.json --seed 7 --intersector moller-trumbore --budget 60`" in text
     assert "`calibrate run --resume --out o.json --budget 60`" in run.not_fitted_message("x", **common)
+    text = run.not_fitted_message("x", **common, cache_bytes=16 << 20)
+    assert "`calibrate run --resume --out o.json --cache 16777216 --budget 60`" in text
+
+
+def test_a_run_given_a_cache_size_counts_against_it_and_tries_no_other(small_suite, tmp_path, monkeypatch):
+    """`calibrate run --cache SIZE`: no cache size is chosen by the fit (select_cache is not
+    called), every in-context record's lines are counted against SIZE, and the file says so."""
+    def no_choice(*args, **kwargs):
+        raise AssertionError("select_cache called for a run given its cache size")
+
+    monkeypatch.setattr(run, "select_cache", no_choice)
+    out = tmp_path / "cal.json"
+    run.run_calibration(out, budget_s=60, target_rel_width=None, seed=2, cache_bytes=3 << 20)
+    cal = calfile.load(out)
+    assert calfile.cache_bytes_of(cal) == 3 << 20 and cal["meta"]["cache_candidates"] == [3 << 20]
+    assert "calibrate run --cache" in cal["meta"]["cache_source"] and "cache_scores" not in cal["meta"]
+    ctx = [m for m in cal["measurements"] if m["kind"] == "in_context"]
+    assert ctx and all(m["misses"] == pytest.approx(float(lines_beyond_cache(
+        m["steps"], m["tests"], m["memory_bytes"], 3 << 20, m["visits"] + m["changes"]))) for m in ctx)
+    for bad in (0, -5, 2.5, True):
+        with pytest.raises(UserError, match="cache size"):
+            run.run_calibration(tmp_path / "bad.json", budget_s=60, cache_bytes=bad)
 
 
 def test_slow_fits_end_measuring_earlier(small_suite, tmp_path, monkeypatch):
