@@ -239,7 +239,8 @@ def cmd_run(args) -> int:
                          cv_mare_by_rays=result.cv_mare_by_rays or {},
                          constants_by_rays=_constants_by_rays(cal),
                          constants_isolated=cal.get("isolated") or {},
-                         ratio_rel_width=result.ratio_rel_width, warnings=list(result.warnings), out=str(out)))
+                         ratio_rel_width=result.ratio_rel_width, cache_bytes=cal["meta"].get("cache_bytes"),
+                         warnings=list(result.warnings), out=str(out)))
         return 0
     console.print(_constants_table(cal, f"calibration of this host ({cal['meta']['intersector']} intersector), "
                                         "all ray sets"))
@@ -261,9 +262,26 @@ def cmd_run(args) -> int:
                   + (f" (each by its ray set's constants; by the pooled constants "
                      f"{100 * result.holdout_mare_pooled:.1f}%)" if result.holdout_mare_by_rays else ""))
     _print_cross_validated(console, cal)
+    if cal["meta"].get("cache_bytes"):
+        console.print(_cache_line(cal["meta"]))
     console.print(f"wall time {time.monotonic() - t0:.1f} s; written to {out}")
     _print_warnings(result.warnings)
     return 0
+
+
+def _cache_line(meta) -> str:
+    """The memory term's cache size as a run chose it: the size, how it was chosen, and the sizes
+    within ten log units of the best score (the choice flips between close ones from run to run)."""
+    line = f"memory term counted against a {meta['cache_bytes'] / 2**20:.4g} MiB cache"
+    scores = {int(c): v for c, v in (meta.get("cache_scores") or {}).items() if v is not None}
+    if scores:
+        best = max(scores.values())
+        near = ", ".join(f"{c / 2**20:.4g} MiB {v - best:+.1f}" for c, v in sorted(scores.items()) if v >= best - 10)
+        line += (f", chosen by the fit among {len(meta['cache_scores'])} sizes (log posterior against the best: "
+                 f"{near})")
+    elif meta.get("cache_source"):
+        line += f": {meta['cache_source']}"
+    return line
 
 
 def _print_warnings(warnings: list) -> None:

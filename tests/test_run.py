@@ -256,6 +256,7 @@ def test_run_json_and_show(small_suite, tmp_path, capsys):
     for key in ("t_setup_ns", "t_step_ns", "t_int_ns", "t_sub_ns", "ratio"):
         assert key in printed["constants"]
     assert printed["wall_s"] > 0
+    assert printed["cache_bytes"] == calfile.load(out)["meta"]["cache_bytes"] > 0
     # the run's warnings are in the JSON and, as without --json, on stderr
     assert isinstance(printed["warnings"], list) and all(isinstance(w, str) for w in printed["warnings"])
     err = " ".join(captured.err.split())
@@ -267,6 +268,21 @@ def test_run_json_and_show(small_suite, tmp_path, capsys):
     assert [Path(p).name for p in shown["plots"]] == ["fig-corner.png", "fig-residuals.png", "fig-isolated.png"]
     for p in shown["plots"]:
         assert Path(p).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_the_run_summary_says_the_cache_and_the_sizes_close_to_it():
+    """The closing summary's cache line: the size, and the sizes within ten log units of the best
+    score (so a user sees when the choice was close); or how a size given by hand was set."""
+    from calibrate.cli import _cache_line
+
+    mib = 1 << 20
+    meta = dict(cache_bytes=8 * mib, cache_scores={str(4 * mib): 353.2, str(8 * mib): 370.3,
+                                                  str(16 * mib): 368.3, str(32 * mib): None})
+    line = _cache_line(meta)
+    assert line.startswith("memory term counted against a 8 MiB cache, chosen by the fit among 4 sizes"), line
+    assert "8 MiB +0.0, 16 MiB -2.0)" in line and "4 MiB" not in line, line
+    line = _cache_line(dict(cache_bytes=16 * mib, cache_source="set by `calibrate run --cache` (16777216 bytes)"))
+    assert line == "memory term counted against a 16 MiB cache: set by `calibrate run --cache` (16777216 bytes)"
 
 
 def _planted_isolated_records(sub_diffs, t_setup=50.0, t_step=10.0, seed=0, transient=0.0):
