@@ -579,6 +579,14 @@ def _finish(result, recs, seed, priors, warnings, deadline=None):
     return by_rays, skipped, _holdout(result, by_rays, recs), _cross_validated(result, by_rays, recs, seed, priors)
 
 
+def checked_cache_bytes(value) -> int:
+    """A cache size given by hand (``--cache``; :func:`run_calibration`, :func:`refit_calibration`):
+    a whole number of bytes > 0, else UserError."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value <= 0:
+        raise UserError(f"the cache size must be a whole number of bytes > 0, got {value!r}")
+    return int(value)
+
+
 def refit_calibration(cal, *, seed: int = 0, cache_bytes: int | None = None) -> tuple[dict, list]:
     """``calibrate fit``: a run's fits again on a calibration's stored measurements, by this
     version's code (the in-context records' ``misses`` counted again against the file's cache
@@ -599,9 +607,7 @@ def refit_calibration(cal, *, seed: int = 0, cache_bytes: int | None = None) -> 
     cache = calfile.cache_bytes_of(cal)
     ctx = [r for r in recs if r["kind"] == "in_context"]
     if cache_bytes is not None:
-        cache_bytes = int(cache_bytes)
-        if cache_bytes <= 0:
-            raise UserError(f"the cache size must be a positive number of bytes, got {cache_bytes}")
+        cache_bytes = checked_cache_bytes(cache_bytes)
         lacking = sum(1 for r in ctx if "memory_bytes" not in r)
         if not ctx:
             raise UserError("--cache: the file holds no in-context measurements, so no cache lines can be counted "
@@ -724,8 +730,7 @@ def run_calibration(out: Path, *, budget_s: float = DEFAULT_BUDGET_S,
     warnings: list = []
 
     if cache_bytes is not None:
-        if isinstance(cache_bytes, bool) or not isinstance(cache_bytes, int) or cache_bytes <= 0:
-            raise UserError(f"the cache size must be a whole number of bytes > 0, got {cache_bytes!r}")
+        cache_bytes = checked_cache_bytes(cache_bytes)
         cache, candidates = cache_bytes, [cache_bytes]
         cache_source, cache_scores = f"set by `calibrate run --cache` ({cache_bytes} bytes)", None
     else:

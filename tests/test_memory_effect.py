@@ -408,6 +408,9 @@ def test_calibrate_fit_counts_the_lines_against_a_cache_given_by_hand(planted):
     old["constants"].pop("t_mem_ns", None)
     with pytest.raises(UserError, match="memory_bytes"):
         run.refit_calibration(old, seed=0, cache_bytes=CACHE)
+    for bad in (0, -5, 2.5, True):  # the same check as a run's (run.checked_cache_bytes)
+        with pytest.raises(UserError, match="cache size"):
+            run.refit_calibration(cal, seed=0, cache_bytes=bad)
 
 
 def test_calibrate_fit_cache_on_the_command_line(planted, tmp_path, capsys):
