@@ -50,4 +50,51 @@ GC_INLINE int gc_ray_box_clip(const gc_ray *r, const double lo[3], const double 
     return 1;
 }
 
+/* The same clip on AVX2, the three slabs at once, for the AVX2 walk (traverse.c).  Lane
+ * i of each vector is slab i's value, lane 3 is zero (gc_load3_avx2) and takes no part;
+ * every lane's arithmetic is gc_ray_box_clip's, a slab the ray is parallel to enters as
+ * [-inf, inf] where the loop above skips it, and the slabs' ends are folded into the
+ * interval in the loop's order by the same maxsd and minsd (so a NaN end is ignored as
+ * the loop's comparisons ignore it): the same interval, bit for bit. */
+#if defined(GC_HAVE_AVX2_RAY)
+GC_AVX2_RAY GC_INLINE int gc_ray_box_clip_avx2(const gc_ray *r, const double lo[3], const double hi[3],
+                                               double *t0, double *t1)
+{
+    const __m256d o = gc_load3_avx2(r->o), d = gc_load3_avx2(r->d), inv_d = gc_load3_avx2(r->inv_d);
+    const __m256d l = gc_load3_avx2(lo), h = gc_load3_avx2(hi);
+    const __m256d zero = _mm256_setzero_pd(), w = _mm256_set1_pd(GC_SLAB_WIDEN);
+    const __m256d sign = _mm256_castsi256_pd(_mm256_set1_epi64x(INT64_MIN));
+    const __m256d moves = _mm256_cmp_pd(d, zero, _CMP_NEQ_UQ);
+    /* parallel to a slab: inside it within the pad, or no interval */
+    const __m256d pad = _mm256_mul_pd(w, _mm256_max_pd(_mm256_andnot_pd(sign, l), _mm256_andnot_pd(sign, h)));
+    const __m256d inside = _mm256_and_pd(_mm256_cmp_pd(o, _mm256_sub_pd(l, pad), _CMP_GE_OQ),
+                                         _mm256_cmp_pd(o, _mm256_add_pd(h, pad), _CMP_LE_OQ));
+    if (_mm256_movemask_pd(_mm256_or_pd(moves, inside)) != 0xf) {
+        return 0;
+    }
+    const __m256d tn = _mm256_mul_pd(_mm256_sub_pd(l, o), inv_d);
+    const __m256d tf = _mm256_mul_pd(_mm256_sub_pd(h, o), inv_d);
+    const __m256d swap = _mm256_cmp_pd(tn, tf, _CMP_GT_OQ);
+    const __m256d t_lo = _mm256_blendv_pd(tn, tf, swap), t_hi = _mm256_blendv_pd(tf, tn, swap);
+    __m256d wn = _mm256_sub_pd(t_lo, _mm256_mul_pd(w, _mm256_andnot_pd(sign, t_lo)));
+    __m256d wf = _mm256_add_pd(t_hi, _mm256_mul_pd(w, _mm256_andnot_pd(sign, t_hi)));
+    wn = _mm256_blendv_pd(_mm256_set1_pd(-INFINITY), wn, moves);
+    wf = _mm256_blendv_pd(_mm256_set1_pd(INFINITY), wf, moves);
+    const __m128d wn01 = _mm256_castpd256_pd128(wn), wf01 = _mm256_castpd256_pd128(wf);
+    __m128d ta = _mm_max_sd(wn01, _mm_set_sd(*t0));
+    __m128d tb = _mm_min_sd(wf01, _mm_set_sd(*t1));
+    ta = _mm_max_sd(_mm_unpackhi_pd(wn01, wn01), ta);
+    tb = _mm_min_sd(_mm_unpackhi_pd(wf01, wf01), tb);
+    ta = _mm_max_sd(_mm256_extractf128_pd(wn, 1), ta);
+    tb = _mm_min_sd(_mm256_extractf128_pd(wf, 1), tb);
+    const double a = _mm_cvtsd_f64(ta), b = _mm_cvtsd_f64(tb);
+    if (!(a <= b)) {
+        return 0;
+    }
+    *t0 = a;
+    *t1 = b;
+    return 1;
+}
+#endif
+
 #endif /* GC_BOX_H */

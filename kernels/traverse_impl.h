@@ -32,10 +32,67 @@ GC_TW_ATTR static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, con
      * boundaries, the cells left before the walk leaves the grid (the entry
      * cell included), and the step in the flat cell index.  An axis the ray
      * does not move along has t_next = inf, dt = 0 and is never chosen. */
-    int32_t c[3], left[3];
+    int32_t c[3];
     int64_t stride[3];
-    double t_next[3], dt[3];
     const int64_t axis_stride[3] = {1, (int64_t)nd->n[0], (int64_t)nd->n[0] * (int64_t)nd->n[1]};
+#if GC_TW_SIMD == 4 && GC_MASKED_DDA
+    /* The same operations as the loop below (the other builds'), on the three axes
+     * at once: lane i of each vector is axis i's value, lane 3 is not used.  Every
+     * lane's arithmetic is the scalar code's (IEEE operations in the same order, no
+     * contraction; floor is roundpd toward -inf, the clamp maxpd then minpd, and the
+     * integers are exact in double), so the walk is the same walk. */
+    __m128d vtx, vty, vtz, vdx, vdy, vdz;
+    int64_t lx, ly, lz;
+    {
+        const __m256d o = gc_load3_avx2(r->o), d = gc_load3_avx2(r->d), inv_d = gc_load3_avx2(r->inv_d);
+        const __m256d lo = gc_load3_avx2(nd->lo), hi = gc_load3_avx2(nd->hi);
+        const __m256d cell = gc_load3_avx2(nd->cell), inv_cell = gc_load3_avx2(nd->inv_cell);
+        const __m256d n =
+            _mm256_cvtepi32_pd(_mm_insert_epi32(_mm_loadu_si128((const __m128i *)(const void *)nd->n), 0, 3));
+        const __m256d zero = _mm256_setzero_pd(), one = _mm256_set1_pd(1.0);
+        const __m256d p = _mm256_add_pd(o, _mm256_mul_pd(_mm256_set1_pd(ta), d));
+        const __m256d f = _mm256_round_pd(_mm256_mul_pd(_mm256_sub_pd(p, lo), inv_cell),
+                                          _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC);
+        const __m256d cf = _mm256_min_pd(_mm256_max_pd(f, zero), _mm256_sub_pd(n, one));
+        const __m256d pos = _mm256_cmp_pd(d, zero, _CMP_GT_OQ);
+        const __m256d moves = _mm256_cmp_pd(d, zero, _CMP_NEQ_UQ);
+        /* cells left: n - c going up, c + 1 down, c + 2 (never reached) along an axis
+         * the ray does not move along */
+        __m256d left = _mm256_blendv_pd(_mm256_add_pd(cf, one), _mm256_sub_pd(n, cf), pos);
+        left = _mm256_blendv_pd(_mm256_add_pd(cf, _mm256_set1_pd(2.0)), left, moves);
+        /* the boundary ahead, the grid's last face its box's own */
+        const __m256d e = _mm256_add_pd(cf, _mm256_and_pd(pos, one));
+        const __m256d edge = _mm256_blendv_pd(_mm256_add_pd(lo, _mm256_mul_pd(e, cell)), hi,
+                                              _mm256_cmp_pd(e, n, _CMP_EQ_OQ));
+        const __m256d t_next = _mm256_blendv_pd(_mm256_set1_pd(INFINITY),
+                                                _mm256_mul_pd(_mm256_sub_pd(edge, o), inv_d), moves);
+        const __m256d sign = _mm256_castsi256_pd(_mm256_set1_epi64x(INT64_MIN));
+        const __m256d dt = _mm256_and_pd(_mm256_andnot_pd(sign, _mm256_mul_pd(cell, inv_d)), moves);
+        const __m128i ci = _mm256_cvttpd_epi32(cf), li = _mm256_cvttpd_epi32(left);
+        c[0] = _mm_cvtsi128_si32(ci);
+        c[1] = _mm_extract_epi32(ci, 1);
+        c[2] = _mm_extract_epi32(ci, 2);
+        lx = _mm_cvtsi128_si32(li);
+        ly = _mm_extract_epi32(li, 1);
+        lz = _mm_extract_epi32(li, 2);
+        /* the index step: +-1 times the axis's stride, 0 along an axis the ray does not move along */
+        const __m256d sgn = _mm256_and_pd(_mm256_blendv_pd(_mm256_set1_pd(-1.0), one, pos), moves);
+        const __m128i si = _mm256_cvttpd_epi32(sgn);
+        stride[0] = _mm_cvtsi128_si32(si);
+        stride[1] = (int64_t)_mm_extract_epi32(si, 1) * axis_stride[1];
+        stride[2] = (int64_t)_mm_extract_epi32(si, 2) * axis_stride[2];
+        const __m128d t_lo = _mm256_castpd256_pd128(t_next), t_hi = _mm256_extractf128_pd(t_next, 1);
+        const __m128d d_lo = _mm256_castpd256_pd128(dt), d_hi = _mm256_extractf128_pd(dt, 1);
+        vtx = t_lo;
+        vty = _mm_unpackhi_pd(t_lo, t_lo);
+        vtz = t_hi;
+        vdx = d_lo;
+        vdy = _mm_unpackhi_pd(d_lo, d_lo);
+        vdz = d_hi;
+    }
+#else
+    int32_t left[3];
+    double t_next[3], dt[3];
     for (int i = 0; i < 3; ++i) {
         double p = r->o[i] + ta * r->d[i];
         double f = floor((p - nd->lo[i]) * nd->inv_cell[i]);
@@ -62,6 +119,7 @@ GC_TW_ATTR static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, con
             dt[i] = 0.0;
         }
     }
+#endif
     /* The walk picks the next axis without a branch: which axis a ray crosses
      * next is a coin toss for the branch predictor, and a mispredicted step
      * would cost more than the step itself.  With SSE2 the three boundary t's
@@ -77,13 +135,17 @@ GC_TW_ATTR static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, con
     const gc_ray ray = *r;
     double best_t = hit->t;
     int32_t best_prim = hit->prim;
+#if !(GC_TW_SIMD == 4 && GC_MASKED_DDA)
 #if GC_MASKED_DDA
     __m128d vtx = _mm_set_sd(t_next[0]), vty = _mm_set_sd(t_next[1]), vtz = _mm_set_sd(t_next[2]);
     const __m128d vdx = _mm_set_sd(dt[0]), vdy = _mm_set_sd(dt[1]), vdz = _mm_set_sd(dt[2]);
-    const __m128d ones = _mm_castsi128_pd(_mm_set1_epi32(-1));
     int64_t lx = left[0], ly = left[1], lz = left[2];
 #else
     double tn[3] = {t_next[0], t_next[1], t_next[2]};
+#endif
+#endif
+#if GC_MASKED_DDA
+    const __m128d ones = _mm_castsi128_pd(_mm_set1_epi32(-1));
 #endif
     int64_t idx = (int64_t)gc_cell_index(nd, c[0], c[1], c[2]);
     const int64_t first = (int64_t)nd->first_cell;
@@ -292,9 +354,15 @@ GC_TW_ATTR static void GC_TW_NAME(trace)(const gc_grid *g, const gc_ray *r, gc_h
     if (mail) {
         gc_mail_next_ray(mail);
     }
+#if GC_TW_SIMD == 4 && GC_MASKED_DDA
+    if (!gc_ray_box_clip_avx2(r, top->lo, top->hi, &t0, &t1)) {
+        return;
+    }
+#else
     if (!gc_ray_box_clip(r, top->lo, top->hi, &t0, &t1)) {
         return;
     }
+#endif
 #if GC_TW_COUNT
     GC_TW_NAME(walk)(g, top, r, t0, t1, hit, mail, cnt);
 #else
