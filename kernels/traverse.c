@@ -251,7 +251,11 @@ GC_AVX2 static double trace_batch_timed_avx2(const gc_grid *g, int64_t n, const 
     gc_ray r;
     gc_hit h;
     for (int64_t k = 0; k < n; ++k) {
+#if defined(GC_HAVE_AVX2_RAY)
         gc_ray_prepare_avx2(&r, orig + 3 * k, dir + 3 * k);
+#else
+        gc_ray_prepare(&r, orig + 3 * k, dir + 3 * k); /* 32-bit x86: the scalar preparation */
+#endif
         trace_timed_wt_avx2(g, &r, &h, mail);
         sum += record_hit(&h, k, t_out, prim_out);
     }

@@ -6,7 +6,8 @@
  * Run under AddressSanitizer and UndefinedBehaviorSanitizer by
  * `make test-sanitize`.
  */
-#include "gc_internal.h" /* gc_big_calloc, gc_big_move */
+#include "box.h"         /* the box clips, scalar and AVX2 */
+#include "gc_internal.h" /* gc_big_calloc, gc_big_move, the ray preparations */
 #include "gridcal.h"
 #include "overlap.h"
 
@@ -1245,6 +1246,86 @@ static void test_explicit_depth2_resolutions(void)
     mesh_free(&m);
 }
 
+
+/* The AVX2 preparation and box clip against the scalar ones, bit for bit: directions with
+ * components of +0, -0, subnormals (flushed), ties between the largest components, huge
+ * coordinates whose slab distances overflow to inf (a NaN end after widening), origins on
+ * the box's faces, flat boxes. */
+#if defined(GC_HAVE_AVX2_RAY)
+GC_AVX2_RAY static void prepare_avx2(gc_ray *r, const double *o, const double *d) { gc_ray_prepare_avx2(r, o, d); }
+GC_AVX2_RAY static int clip_avx2(const gc_ray *r, const double *lo, const double *hi, double *t0, double *t1)
+{
+    return gc_ray_box_clip_avx2(r, lo, hi, t0, t1);
+}
+
+static int same_bits(double a, double b) { return memcmp(&a, &b, sizeof a) == 0; }
+
+static double pick_component(int kind, double scale)
+{
+    switch (kind) {
+    case 0: return 0.0;
+    case 1: return -0.0;
+    case 2: return (rng_uniform() - 0.5) * 1e-310; /* subnormal: flushed to +0 */
+    case 3: return rng_uniform() < 0.5 ? 1.0 : -1.0; /* ties with another axis */
+    default: return (rng_uniform() - 0.5) * scale;
+    }
+}
+#endif
+
+static void test_ray_setup_avx2(void)
+{
+#if defined(GC_HAVE_AVX2_RAY)
+    __builtin_cpu_init();
+    if (!__builtin_cpu_supports("avx2")) {
+        printf("ray setup on AVX2: not checked (this CPU has no AVX2)\n");
+        return;
+    }
+    int clipped = 0, parallel = 0, nan_ends = 0;
+    for (int k = 0; k < 200000; ++k) {
+        rng_seed(0xC11Bu + (uint64_t)k);
+        const double scale = (k % 7 == 0) ? 1e300 : (k % 7 == 1) ? 1e-20 : 10.0;
+        const double dscale = (k % 7 == 0) ? 1e-10 : scale; /* slab distances past DBL_MAX */
+        double lo[3], hi[3], o[3], d[3];
+        for (int i = 0; i < 3; ++i) {
+            lo[i] = (rng_uniform() - 0.5) * scale;
+            hi[i] = (k % 11 == 0 && i == 1) ? lo[i] : lo[i] + rng_uniform() * scale;
+            o[i] = (k % 5 == 0) ? (rng_uniform() < 0.5 ? lo[i] : hi[i]) : (rng_uniform() - 0.5) * 3.0 * scale;
+            d[i] = pick_component(rng_uniform() < 0.3 ? (int)(rng_uniform() * 4.0) : 4, dscale);
+        }
+        if (d[0] == 0.0 && d[1] == 0.0 && d[2] == 0.0) {
+            d[k % 3] = 1.0;
+        }
+        gc_ray a, b;
+        gc_ray_prepare(&a, o, d);
+        prepare_avx2(&b, o, d);
+        int same = a.kx == b.kx && a.ky == b.ky && a.kz == b.kz && same_bits(a.sx, b.sx) && same_bits(a.sy, b.sy) &&
+                   same_bits(a.sz, b.sz);
+        for (int i = 0; i < 3; ++i) {
+            same = same && same_bits(a.o[i], b.o[i]) && same_bits(a.d[i], b.d[i]) && same_bits(a.inv_d[i], b.inv_d[i]);
+        }
+        CHECK(same, "case %d: the AVX2 preparation differs from the scalar one", k);
+        double ta = 0.0, tb = INFINITY, va = 0.0, vb = INFINITY;
+        const int hit = gc_ray_box_clip(&a, lo, hi, &ta, &tb);
+        const int vhit = clip_avx2(&a, lo, hi, &va, &vb);
+        CHECK(hit == vhit && same_bits(ta, va) && same_bits(tb, vb),
+              "case %d: the AVX2 clip gives %d [%.17g, %.17g], the scalar one %d [%.17g, %.17g]", k, vhit, va, vb,
+              hit, ta, tb);
+        clipped += hit;
+        parallel += a.d[0] == 0.0 || a.d[1] == 0.0 || a.d[2] == 0.0;
+        for (int i = 0; i < 3; ++i) {
+            const double tn = (lo[i] - a.o[i]) * a.inv_d[i], tf = (hi[i] - a.o[i]) * a.inv_d[i];
+            nan_ends += a.d[i] != 0.0 && (isinf(tn) || isinf(tf));
+        }
+    }
+    /* the cases reach what they are there for */
+    CHECK(clipped > 1000 && parallel > 1000 && nan_ends > 100, "clipped %d, parallel %d, infinite slab ends %d",
+          clipped, parallel, nan_ends);
+    printf("ray setup on AVX2: 200000 rays as the scalar code prepares and clips them (%d clipped, %d with a zero "
+           "component, %d infinite slab ends)\n",
+           clipped, parallel, nan_ends);
+#endif
+}
+
 int main(void)
 {
     test_prepared_overlap();
@@ -1252,6 +1333,7 @@ int main(void)
     test_refusals();
     test_memory_limit_counts_packs_once();
     test_isa_switch();
+    test_ray_setup_avx2();
     test_threads_same_grid();
     test_face_order();
     test_unused_vertices();
