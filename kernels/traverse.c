@@ -241,8 +241,8 @@ gc_status gc_traverse_set_isa(const char *isa, char *err)
 
 #if defined(GC_HAVE_AVX2_WATERTIGHT)
 /* The timed watertight twin's batch loop on AVX2: compiled for AVX2 like the walk, so
- * the ray's preparation and the walk's entry are one function's code (no call into
- * the AVX2 walk from code built for SSE2). */
+ * the ray's preparation, its box clip (trace_timed_wt_avx2, inlined) and the call into
+ * the walk are AVX2 code in one function, with no call from code built for SSE2. */
 GC_AVX2 static double trace_batch_timed_avx2(const gc_grid *g, int64_t n, const double *orig,
                                              const double *dir, double *t_out, int32_t *prim_out,
                                              gc_mail *mail)
