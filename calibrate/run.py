@@ -601,7 +601,8 @@ def refit_calibration(cal, *, seed: int = 0, cache_bytes: int | None = None) -> 
     The cache the suite's timings fit best need not be the one whose plans are best: on this
     project's 2-core EPYC host, three runs that chose 8, 8 and 16 MiB all planned within 3.6% of
     their sweeps' best refitted at 16 MiB, and one of the 8 MiB ones 8.2% off as chosen
-    (docs/calibration.md, "Shorter values, half an octave of cache, and r from run to run").  Returns (validated calibration, warnings)."""
+    (docs/calibration.md, "Shorter values, half an octave of cache, and r from run to run").
+    Returns (validated calibration, warnings)."""
     cal = calfile.validate(calfile._plain(cal))
     recs = calfile.apply_drift(cal["measurements"])
     cache = calfile.cache_bytes_of(cal)

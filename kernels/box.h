@@ -63,10 +63,9 @@ GC_AVX2_RAY GC_INLINE int gc_ray_box_clip_avx2(const gc_ray *r, const double lo[
     const __m256d o = gc_load3_avx2(r->o), d = gc_load3_avx2(r->d), inv_d = gc_load3_avx2(r->inv_d);
     const __m256d l = gc_load3_avx2(lo), h = gc_load3_avx2(hi);
     const __m256d zero = _mm256_setzero_pd(), w = _mm256_set1_pd(GC_SLAB_WIDEN);
-    const __m256d sign = _mm256_castsi256_pd(_mm256_set1_epi64x(INT64_MIN));
     const __m256d moves = _mm256_cmp_pd(d, zero, _CMP_NEQ_UQ);
     /* parallel to a slab: inside it within the pad, or no interval */
-    const __m256d pad = _mm256_mul_pd(w, _mm256_max_pd(_mm256_andnot_pd(sign, l), _mm256_andnot_pd(sign, h)));
+    const __m256d pad = _mm256_mul_pd(w, _mm256_max_pd(gc_fabs_avx2(l), gc_fabs_avx2(h)));
     const __m256d inside = _mm256_and_pd(_mm256_cmp_pd(o, _mm256_sub_pd(l, pad), _CMP_GE_OQ),
                                          _mm256_cmp_pd(o, _mm256_add_pd(h, pad), _CMP_LE_OQ));
     if (_mm256_movemask_pd(_mm256_or_pd(moves, inside)) != 0xf) {
@@ -76,8 +75,8 @@ GC_AVX2_RAY GC_INLINE int gc_ray_box_clip_avx2(const gc_ray *r, const double lo[
     const __m256d tf = _mm256_mul_pd(_mm256_sub_pd(h, o), inv_d);
     const __m256d swap = _mm256_cmp_pd(tn, tf, _CMP_GT_OQ);
     const __m256d t_lo = _mm256_blendv_pd(tn, tf, swap), t_hi = _mm256_blendv_pd(tf, tn, swap);
-    __m256d wn = _mm256_sub_pd(t_lo, _mm256_mul_pd(w, _mm256_andnot_pd(sign, t_lo)));
-    __m256d wf = _mm256_add_pd(t_hi, _mm256_mul_pd(w, _mm256_andnot_pd(sign, t_hi)));
+    __m256d wn = _mm256_sub_pd(t_lo, _mm256_mul_pd(w, gc_fabs_avx2(t_lo)));
+    __m256d wf = _mm256_add_pd(t_hi, _mm256_mul_pd(w, gc_fabs_avx2(t_hi)));
     wn = _mm256_blendv_pd(_mm256_set1_pd(-INFINITY), wn, moves);
     wf = _mm256_blendv_pd(_mm256_set1_pd(INFINITY), wf, moves);
     const __m128d wn01 = _mm256_castpd256_pd128(wn), wf01 = _mm256_castpd256_pd128(wf);

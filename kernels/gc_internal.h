@@ -133,15 +133,10 @@ typedef struct {
     double sx, sy, sz;
 } gc_ray;
 
-GC_INLINE void gc_ray_prepare(gc_ray *r, const double *o, const double *d)
+/* The watertight test's axes from the prepared direction r->d: kz the dominant axis,
+ * kx and ky the others in the order that keeps the winding. */
+GC_INLINE void gc_ray_axes(gc_ray *r)
 {
-    for (int i = 0; i < 3; ++i) {
-        r->o[i] = o[i];
-        /* -0.0 and +0.0 are the same direction: normalise so 1/d is +inf for both
-         * and no sign of zero leaks into the traversal. */
-        r->d[i] = (fabs(d[i]) < GC_DIRECTION_FLUSH) ? 0.0 : d[i];
-        r->inv_d[i] = 1.0 / r->d[i];
-    }
     double ax = fabs(r->d[0]), ay = fabs(r->d[1]), az = fabs(r->d[2]);
     /* kz: the dominant axis (ties to the later one), by arithmetic, not
      * branches: for rays in every direction the comparisons are coin tosses. */
@@ -152,13 +147,24 @@ GC_INLINE void gc_ray_prepare(gc_ray *r, const double *o, const double *d)
     /* keep the winding so the sign tests stay meaningful */
     const int flip = r->d[kz] < 0.0;
     const int swap = (kx0 ^ ky0) & -flip; /* exchanges kx and ky when flip, by arithmetic */
-    const int kx = kx0 ^ swap, ky = ky0 ^ swap;
-    r->kx = kx;
-    r->ky = ky;
+    r->kx = kx0 ^ swap;
+    r->ky = ky0 ^ swap;
     r->kz = kz;
-    r->sx = r->d[kx] / r->d[kz];
-    r->sy = r->d[ky] / r->d[kz];
-    r->sz = 1.0 / r->d[kz];
+}
+
+GC_INLINE void gc_ray_prepare(gc_ray *r, const double *o, const double *d)
+{
+    for (int i = 0; i < 3; ++i) {
+        r->o[i] = o[i];
+        /* -0.0 and +0.0 are the same direction: normalise so 1/d is +inf for both
+         * and no sign of zero leaks into the traversal. */
+        r->d[i] = (fabs(d[i]) < GC_DIRECTION_FLUSH) ? 0.0 : d[i];
+        r->inv_d[i] = 1.0 / r->d[i];
+    }
+    gc_ray_axes(r);
+    r->sx = r->d[r->kx] / r->d[r->kz];
+    r->sy = r->d[r->ky] / r->d[r->kz];
+    r->sz = 1.0 / r->d[r->kz];
 }
 
 /* The preparation on AVX2, for the AVX2 walk (traverse.c): the three components of the
@@ -183,31 +189,25 @@ GC_AVX2_RAY GC_INLINE void gc_store3_avx2(double *x, __m256d v)
     _mm_store_sd(x + 2, _mm256_extractf128_pd(v, 1));
 }
 
+/* |v| per lane: the sign bit cleared, as fabs does */
+GC_AVX2_RAY GC_INLINE __m256d gc_fabs_avx2(__m256d v)
+{
+    return _mm256_andnot_pd(_mm256_castsi256_pd(_mm256_set1_epi64x(INT64_MIN)), v);
+}
+
 GC_AVX2_RAY GC_INLINE void gc_ray_prepare_avx2(gc_ray *r, const double *o, const double *d)
 {
-    const __m256d sign = _mm256_castsi256_pd(_mm256_set1_epi64x(INT64_MIN));
     const __m256d dv = gc_load3_avx2(d);
-    const __m256d ad = _mm256_andnot_pd(sign, dv);
-    const __m256d flush = _mm256_cmp_pd(ad, _mm256_set1_pd(GC_DIRECTION_FLUSH), _CMP_LT_OQ);
+    const __m256d flush = _mm256_cmp_pd(gc_fabs_avx2(dv), _mm256_set1_pd(GC_DIRECTION_FLUSH), _CMP_LT_OQ);
     const __m256d df = _mm256_andnot_pd(flush, dv); /* +0.0 where flushed */
     gc_store3_avx2(r->o, gc_load3_avx2(o));
     gc_store3_avx2(r->d, df);
     gc_store3_avx2(r->inv_d, _mm256_div_pd(_mm256_set1_pd(1.0), df));
-    const double ax = fabs(r->d[0]), ay = fabs(r->d[1]), az = fabs(r->d[2]);
-    const int x_max = (ax > ay) & (ax > az), y_max = !(ax > ay) & (ay > az);
-    const int kz = 2 - 2 * x_max - y_max;
-    static const int gc_next_axis[3] = {1, 2, 0};
-    const int kx0 = gc_next_axis[kz], ky0 = gc_next_axis[kx0];
-    const int flip = r->d[kz] < 0.0;
-    const int swap = (kx0 ^ ky0) & -flip;
-    const int kx = kx0 ^ swap, ky = ky0 ^ swap;
-    r->kx = kx;
-    r->ky = ky;
-    r->kz = kz;
-    const __m128d s = _mm_div_pd(_mm_set_pd(r->d[ky], r->d[kx]), _mm_set1_pd(r->d[kz]));
+    gc_ray_axes(r);
+    const __m128d s = _mm_div_pd(_mm_set_pd(r->d[r->ky], r->d[r->kx]), _mm_set1_pd(r->d[r->kz]));
     r->sx = _mm_cvtsd_f64(s);
     r->sy = _mm_cvtsd_f64(_mm_unpackhi_pd(s, s));
-    r->sz = r->inv_d[kz];
+    r->sz = r->inv_d[r->kz];
 }
 #endif
 

@@ -66,8 +66,7 @@ GC_TW_ATTR static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, con
                                               _mm256_cmp_pd(e, n, _CMP_EQ_OQ));
         const __m256d t_next = _mm256_blendv_pd(_mm256_set1_pd(INFINITY),
                                                 _mm256_mul_pd(_mm256_sub_pd(edge, o), inv_d), moves);
-        const __m256d sign = _mm256_castsi256_pd(_mm256_set1_epi64x(INT64_MIN));
-        const __m256d dt = _mm256_and_pd(_mm256_andnot_pd(sign, _mm256_mul_pd(cell, inv_d)), moves);
+        const __m256d dt = _mm256_and_pd(gc_fabs_avx2(_mm256_mul_pd(cell, inv_d)), moves);
         const __m128i ci = _mm256_cvttpd_epi32(cf), li = _mm256_cvttpd_epi32(left);
         c[0] = _mm_cvtsi128_si32(ci);
         c[1] = _mm_extract_epi32(ci, 1);
