@@ -248,15 +248,15 @@ GC_AVX2 static double trace_batch_timed_avx2(const gc_grid *g, int64_t n, const 
                                              gc_mail *mail)
 {
     double sum = 0.0;
-    gc_ray r;
+    wray_timed_wt_avx2 w;
     gc_hit h;
     for (int64_t k = 0; k < n; ++k) {
 #if defined(GC_HAVE_AVX2_RAY)
-        gc_ray_prepare_avx2(&r, orig + 3 * k, dir + 3 * k);
+        gc_ray_prepare_avx2(&w.ray, orig + 3 * k, dir + 3 * k);
 #else
-        gc_ray_prepare(&r, orig + 3 * k, dir + 3 * k); /* 32-bit x86: the scalar preparation */
+        gc_ray_prepare(&w.ray, orig + 3 * k, dir + 3 * k); /* 32-bit x86: the scalar preparation */
 #endif
-        trace_timed_wt_avx2(g, &r, &h, mail);
+        trace_timed_wt_avx2(g, &w, &h, mail);
         sum += record_hit(&h, k, t_out, prim_out);
     }
     return sum;
@@ -269,7 +269,6 @@ static double trace_batch_timed(const gc_grid *g, int64_t n, const double *orig,
                                 double *t_out, int32_t *prim_out, gc_mail *mail)
 {
     double sum = 0.0;
-    gc_ray r;
     gc_hit h;
     if (g->intersector == GC_WATERTIGHT) {
 #if defined(GC_HAVE_AVX2_WATERTIGHT)
@@ -277,15 +276,17 @@ static double trace_batch_timed(const gc_grid *g, int64_t n, const double *orig,
             return trace_batch_timed_avx2(g, n, orig, dir, t_out, prim_out, mail);
         }
 #endif
+        wray_timed_wt w;
         for (int64_t k = 0; k < n; ++k) {
-            gc_ray_prepare(&r, orig + 3 * k, dir + 3 * k);
-            trace_timed_wt(g, &r, &h, mail);
+            gc_ray_prepare(&w.ray, orig + 3 * k, dir + 3 * k);
+            trace_timed_wt(g, &w, &h, mail);
             sum += record_hit(&h, k, t_out, prim_out);
         }
     } else {
+        wray_timed_mt w;
         for (int64_t k = 0; k < n; ++k) {
-            gc_ray_prepare(&r, orig + 3 * k, dir + 3 * k);
-            trace_timed_mt(g, &r, &h, mail);
+            gc_ray_prepare(&w.ray, orig + 3 * k, dir + 3 * k);
+            trace_timed_mt(g, &w, &h, mail);
             sum += record_hit(&h, k, t_out, prim_out);
         }
     }
@@ -326,15 +327,17 @@ gc_status gc_count(const gc_grid *g, int64_t n, const double *origins, const dou
     if (st != GC_OK) {
         return st;
     }
-    gc_ray r;
+    wray_counted_wt wt;
+    wray_counted_mt mt;
     gc_hit h;
     for (int64_t k = 0; k < n; ++k) {
         gc_counts cnt = {0, 0, 0, 0, 0};
-        gc_ray_prepare(&r, origins + 3 * k, directions + 3 * k);
         if (g->intersector == GC_WATERTIGHT) {
-            trace_counted_wt(g, &r, &h, mail, &cnt);
+            gc_ray_prepare(&wt.ray, origins + 3 * k, directions + 3 * k);
+            trace_counted_wt(g, &wt, &h, mail, &cnt);
         } else {
-            trace_counted_mt(g, &r, &h, mail, &cnt);
+            gc_ray_prepare(&mt.ray, origins + 3 * k, directions + 3 * k);
+            trace_counted_mt(g, &mt, &h, mail, &cnt);
         }
         if (t) {
             t[k] = h.t;

@@ -20,14 +20,32 @@
  * before that point is stored in a cell already visited.
  */
 
-GC_TW_ATTR static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const gc_ray *r, double ta,
-                             double tb, gc_hit *hit, gc_mail *mail
+/* A ray as each of its walks reads it: the prepared ray and, for the packed sign stage,
+ * its broadcast form (gc_ray4 or gc_ray2), made once a ray by the trace below, not once a
+ * node entered; a nested grid's ray enters several. */
+#if GC_TW_SIMD == 4
+#define GC_TW_RAYV gc_ray4
+#elif GC_TW_SIMD == 2
+#define GC_TW_RAYV gc_ray2
+#endif
+typedef struct {
+    gc_ray ray;
+#if GC_TW_SIMD
+    GC_TW_RAYV v;
+#endif
+} GC_TW_NAME(wray);
+
+GC_TW_ATTR static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, const GC_TW_NAME(wray) *restrict w,
+                             double ta, double tb, gc_hit *hit, gc_mail *mail
 #if GC_TW_COUNT
                              ,
                              gc_counts *cnt
 #endif
 )
 {
+    /* The walk reads the ray where the trace made it (restrict: no store of the walk's
+     * reaches it), rather than a copy of its own each node. */
+    const gc_ray *restrict r = &w->ray;
     /* Per axis: the entry cell, the t of the next cell boundary, the t between
      * boundaries, the cells left before the walk leaves the grid (the entry
      * cell included), and the step in the flat cell index.  An axis the ray
@@ -128,10 +146,9 @@ GC_TW_ATTR static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, con
      * before the grid ends) takes the same masks.  The chain one step hands
      * to the next is then a compare, two logic operations and an add; an
      * index into per-axis arrays in memory (the other build) runs each step
-     * through a store and a reload and a table lookup.  The ray and the best
-     * hit are local copies, so the compiler keeps them in registers instead
-     * of reloading them after every store of a hit. */
-    const gc_ray ray = *r;
+     * through a store and a reload and a table lookup.  The best hit is a local
+     * copy, so the compiler keeps it in registers instead of reloading it after
+     * every store of a hit. */
     double best_t = hit->t;
     int32_t best_prim = hit->prim;
 #if !(GC_TW_SIMD == 4 && GC_MASKED_DDA)
@@ -152,13 +169,6 @@ GC_TW_ATTR static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, con
     const gc_cell *cells = g->cells;
     const uint64_t *occ = g->occ;
     const gc_pack *ref_tris = g->ref_tris;
-#if GC_TW_SIMD == 4
-    gc_ray4 rayv;
-    gc_ray4_prepare(&rayv, &ray);
-#elif GC_TW_SIMD == 2
-    gc_ray2 rayv;
-    gc_ray2_prepare(&rayv, &ray);
-#endif
 #if !GC_MASKED_DDA
     /* the axis whose boundary comes first, indexed by the three comparisons */
     static const uint8_t next_axis[8] = {2, 1, 2, 1, 2, 1, 0, 0};
@@ -222,9 +232,9 @@ GC_TW_ATTR static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, con
             hit->prim = best_prim;
 #if GC_TW_COUNT
             cnt->subgrids++;
-            GC_TW_NAME(walk)(g, &g->nodes[cell.begin], &ray, t_enter, t_exit, hit, mail, cnt);
+            GC_TW_NAME(walk)(g, &g->nodes[cell.begin], w, t_enter, t_exit, hit, mail, cnt);
 #else
-            GC_TW_NAME(walk)(g, &g->nodes[cell.begin], &ray, t_enter, t_exit, hit, mail);
+            GC_TW_NAME(walk)(g, &g->nodes[cell.begin], w, t_enter, t_exit, hit, mail);
 #endif
             best_t = hit->t;
             best_prim = hit->prim;
@@ -245,7 +255,7 @@ GC_TW_ATTR static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, con
                         cnt->tests++;
 #endif
                         double t;
-                        if (GC_TW_ISECT(&ray, &pk->c[0][lane], best_t, &t)) {
+                        if (GC_TW_ISECT(r, &pk->c[0][lane], best_t, &t)) {
                             best_t = t;
                             best_prim = prim;
                         }
@@ -276,16 +286,16 @@ GC_TW_ATTR static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, con
                     const int is_last = pk == pk_last;
                     keep &= is_last ? keep_last : full;
 #if GC_TW_SIMD == 4
-                    int m = gc_isect_watertight_signs_avx2(&rayv, &pk->c[0][0]) & keep;
+                    int m = gc_isect_watertight_signs_avx2(&w->v, &pk->c[0][0]) & keep;
 #else
-                    int m = gc_isect_watertight_signs_sse2(&rayv, &pk->c[0][0]) & keep;
+                    int m = gc_isect_watertight_signs_sse2(&w->v, &pk->c[0][0]) & keep;
 #endif
                     /* only the lanes that passed, lowest first */
                     while (m) {
                         const int lane = gc_lowest_bit(m);
                         m &= m - 1;
                         double t;
-                        if (gc_isect_watertight_finish_inline(&ray, &pk->c[0][lane], best_t, &t)) {
+                        if (gc_isect_watertight_finish_inline(r, &pk->c[0][lane], best_t, &t)) {
                             best_t = t;
                             best_prim = pk->id[lane];
                         }
@@ -300,7 +310,7 @@ GC_TW_ATTR static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, con
                 uint32_t lane = cell.begin % GC_LANES;
                 for (uint32_t k = 0; k < cell.count; ++k) {
                     double t;
-                    if (GC_TW_ISECT(&ray, &pk->c[0][lane], best_t, &t)) {
+                    if (GC_TW_ISECT(r, &pk->c[0][lane], best_t, &t)) {
                         best_t = t;
                         best_prim = pk->id[lane];
                     }
@@ -338,14 +348,15 @@ GC_TW_ATTR static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, con
     hit->prim = best_prim;
 }
 
-/* First hit of one prepared ray. */
-GC_TW_ATTR static void GC_TW_NAME(trace)(const gc_grid *g, const gc_ray *r, gc_hit *hit, gc_mail *mail
+/* First hit of one prepared ray (w->ray); the trace fills in w->v. */
+GC_TW_ATTR static void GC_TW_NAME(trace)(const gc_grid *g, GC_TW_NAME(wray) *w, gc_hit *hit, gc_mail *mail
 #if GC_TW_COUNT
                               ,
                               gc_counts *cnt
 #endif
 )
 {
+    const gc_ray *r = &w->ray;
     const gc_node *top = &g->nodes[0];
     double t0 = 0.0, t1 = INFINITY;
     hit->t = INFINITY;
@@ -362,9 +373,18 @@ GC_TW_ATTR static void GC_TW_NAME(trace)(const gc_grid *g, const gc_ray *r, gc_h
         return;
     }
 #endif
+#if GC_TW_SIMD == 4
+    gc_ray4_prepare(&w->v, r);
+#elif GC_TW_SIMD == 2
+    gc_ray2_prepare(&w->v, r);
+#endif
 #if GC_TW_COUNT
-    GC_TW_NAME(walk)(g, top, r, t0, t1, hit, mail, cnt);
+    GC_TW_NAME(walk)(g, top, w, t0, t1, hit, mail, cnt);
 #else
-    GC_TW_NAME(walk)(g, top, r, t0, t1, hit, mail);
+    GC_TW_NAME(walk)(g, top, w, t0, t1, hit, mail);
 #endif
 }
+
+#if GC_TW_SIMD
+#undef GC_TW_RAYV
+#endif

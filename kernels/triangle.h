@@ -179,7 +179,7 @@ GC_INLINE int gc_isect_watertight(const gc_ray *r, const double *tri, double t_m
 #define GC_HAVE_PACKED_WATERTIGHT 1
 
 /* The ray as the two-lane sign stage uses it: the permuted origin and the
- * shear broadcast to both lanes, formed once per walk. */
+ * shear broadcast to both lanes, formed once a ray (the trace, traverse_impl.h). */
 typedef struct {
     __m128d ox, oy, oz, sx, sy;
     int64_t kx, ky, kz; /* the permuted axes, in doubles within a pack's coordinate row */
