@@ -10,10 +10,12 @@ This module turns such callables into robust per-loop timings, following
 pyperf's protocol (Victor Stinner, pyperf ``--min-time``, ``--warmups``,
 ``--loops``; its ``check`` warnings):
 
-1. loop calibration: ``loops`` doubles from 1 until one value lasts at least
-   ``min_value_ns`` (capped at ``max_loops``);
+1. loop calibration: the smallest power of two for which one value lasts at
+   least ``min_value_ns`` (capped at ``max_loops``), from one loop's time and
+   then each try's, at least doubling (:func:`calibrate_loops`);
 2. warm-ups: ``warmups`` values per configuration, in random order, discarded
-   (kept in ``Measurement.warmups_ns`` for inspection only);
+   (kept in ``Measurement.warmups_ns`` for inspection only); the loop
+   calibration's last call, a value of the count it found, is the first;
 3. rounds: each round times every configuration once, in an order drawn from
    the caller's ``np.random.Generator``, so slow drift (thermal, frequency,
    neighbours) affects all configurations alike;
@@ -90,6 +92,10 @@ MIN_VALUE_NS_DEFAULT = 20_000_000
 # Cap on the loop count found by calibration; the C loop counter is at least
 # 32-bit signed, and 2**30 loops of even a 1 ns batch already last ~1 s.
 MAX_LOOPS_DEFAULT = 2**30
+#: A timed call shorter than this share of the minimum value is not used to predict the loop
+#: count (:func:`calibrate_loops`): at 1/1000 of 10 ms, 10 us, a clock's steps of up to 100 ns
+#: err by at most 1%; shorter calls double the loops as pyperf does.
+LOOP_ESTIMATE_MIN_SHARE = 1e-3
 # Values per configuration (rounds) and discarded warm-ups per configuration.
 # pyperf's defaults are 20 processes x 3 values and 1 warm-up per process.
 ROUNDS_DEFAULT = 10
@@ -580,16 +586,26 @@ def calibrate_loops(
     max_loops: int = MAX_LOOPS_DEFAULT,
     name: str = "run",
     stop: Callable[[], bool] | None = None,
+    calls: list | None = None,
 ) -> tuple[int | None, list[str]]:
     """Smallest power-of-two loop count whose value lasts >= min_value_ns.
 
     One call is made and discarded first: the first call of a configuration finds
     its data out of the caches (other configurations ran since it was built) and can
     last many times a warm call, which would settle on a loop count too small, and
-    then every value of the configuration would be one cold call.  Then doubles
-    ``loops`` from 1 (pyperf's calibration). Returns (loops, notes):
+    then every value of the configuration would be one cold call.  Then one loop is
+    timed, and each next try is the smallest power of two that the time a loop took
+    so far says will reach the minimum (at least twice the last try: pyperf's doubling
+    when the estimate is no help), until a call reaches it.  Where pyperf's doubling
+    from 1 makes a call for every power of two below the count (a value of 10 ms from
+    loops of 2 ms: 1, 2, 4 and 8 loops, 30 ms), this makes two (1 and 8 loops, 18 ms)
+    and finds the same count; :func:`measure` keeps the last as a warm-up.  A one-loop time
+    under :data:`LOOP_ESTIMATE_MIN_SHARE` of the minimum (a timer too coarse for it)
+    is not used for an estimate: the loops double instead.  Returns (loops, notes):
     ``loops`` is None when ``stop()`` turned true before calibration finished;
     ``notes`` reports a cap hit (loops = max_loops with a value still short).
+    ``calls``, when given, gets ``(loops, elapsed_ns)`` of each timed call appended (the
+    discarded cold call is not one).
     """
     if min_value_ns <= 0:
         raise ValueError(f"min_value_ns must be > 0, got {min_value_ns}")
@@ -603,6 +619,8 @@ def calibrate_loops(
         if stop is not None and stop():
             return None, []
         elapsed_ns = _call(name, run, loops)
+        if calls is not None:
+            calls.append((loops, elapsed_ns))
         if elapsed_ns >= min_value_ns:
             return loops, []
         if loops >= max_loops:
@@ -610,7 +628,16 @@ def calibrate_loops(
                 f"loop count capped at {max_loops}: a value lasts only {elapsed_ns} ns "
                 f"(< min_value_ns = {min_value_ns})"
             ]
-        loops = min(2 * loops, max_loops)
+        if elapsed_ns >= LOOP_ESTIMATE_MIN_SHARE * min_value_ns:
+            loops = min(max(2 * loops, _loops_reaching(min_value_ns, elapsed_ns, loops)), max_loops)
+        else:
+            loops = min(2 * loops, max_loops)
+
+
+def _loops_reaching(min_value_ns: int, elapsed_ns: int, loops: int) -> int:
+    """The smallest power of two whose value lasts >= min_value_ns at elapsed_ns / loops a loop."""
+    want = -(-min_value_ns * loops // elapsed_ns)  # ceil(min_value_ns / (elapsed_ns / loops)), in integers
+    return 1 << max(int(want) - 1, 0).bit_length()
 
 
 def measure(
@@ -636,7 +663,10 @@ def measure(
     rng : np.random.Generator drawing the order of configurations in each round.
     rounds : values wanted per configuration (>= 1); one round times each
         configuration still short of ``rounds`` values once.
-    warmups : discarded values per configuration before the first round (>= 0).
+    warmups : discarded values per configuration before the first round (>= 0).  A
+        configuration calibrated here has its calibration's last call as its first
+        warm-up when that call was made with the count found (a discarded value of that
+        count, warm from the calls before it), so the warm-up pass skips it once.
     min_value_ns : minimum duration of one value for loop calibration, ns.
     max_loops : cap on the calibrated loop count.
     progress : optional ``progress(done, total, label)`` called after each
@@ -701,25 +731,29 @@ def measure(
     names = list(configs)
     try:
         # 1. loop calibration, for configurations not resumed
+        last_call = {}  # name -> ns a loop of the calibration's last call, made with the count found
         for name in names:
             if name in results:
                 continue
             report(0, 0, f"calibrating {name}")
+            calls = []
             loops, notes = calibrate_loops(
                 configs[name], min_value_ns=min_value_ns, max_loops=max_loops,
-                name=name, stop=stop,
+                name=name, stop=stop, calls=calls,
             )
             if loops is None:
                 break
             results[name] = Measurement(loops=loops, notes=notes)
+            if calls and calls[-1][0] == loops:
+                last_call[name] = calls[-1][1] / loops
         ready = [n for n in names if n in results]
         for name in ready:
             m = results[name]
             m.target_values = max(m.target_values, rounds)
             m.timer_resolution_ns = float(timer_resolution_ns)
-            m.warmups_ns = []
+            m.warmups_ns = [last_call[name]] if warmups > 0 and name in last_call else []
         need = {n: max(rounds - len(results[n].values_ns), 0) for n in ready}
-        total = warmups * len(ready) + sum(need.values())
+        total = sum(warmups - len(results[n].warmups_ns) for n in ready) + sum(need.values())
         done = 0
 
         def one(name: str, sink: list[float], label: str, stamps: list | None = None) -> bool:
@@ -748,6 +782,8 @@ def measure(
         for w in range(warmups):
             for i in rng.permutation(len(ready)):
                 name = ready[i]
+                if len(results[name].warmups_ns) > w:
+                    continue  # the calibration's last call
                 if not one(name, results[name].warmups_ns, f"warm-up {w + 1}/{warmups} {name}"):
                     return results
         # 3. rounds in random order; drift then hits every configuration alike

@@ -439,7 +439,9 @@ def sweep(scene: Scene, specs: Sequence, rays, *, rounds: int = SWEEP_ROUNDS, bu
         if not configs:
             break
         if b == 0:
-            grand_total = len(configs) * (rounds + SWEEP_WARMUPS * (1 if prime else len(shares)))
+            # the first build's first warm-up is each loop calibration's last call (protocol.measure)
+            grand_total = len(configs) * (rounds + SWEEP_WARMUPS * (1 if prime else len(shares))
+                                          - min(SWEEP_WARMUPS, 1))
         if status is not None:
             status("timing" + (f" (build {b + 1}/{len(shares)})" if len(shares) > 1 else ""))
         # primed, the warm-ups on the first build only: a grid built again was just written

@@ -14,6 +14,7 @@ from calibrate.protocol import (
     TIMER_RESOLUTION_FACTOR,
     Measurement,
     MeasurementInterrupted,
+    LOOP_ESTIMATE_MIN_SHARE,
     calibrate_loops,
     cpu_times,
     drift_factors,
@@ -93,8 +94,60 @@ def test_calibrate_loops_is_smallest_power_of_two_reaching_minimum(i):
     assert loops & (loops - 1) == 0  # power of two
     assert int(loops * ns) >= MIN_VALUE_NS
     assert loops == 1 or int(loops // 2 * ns) < MIN_VALUE_NS
-    # one discarded call, then doubling from 1: one call per power of two up to loops
-    assert [l for _, l in run.log] == [1] + [2**k for k in range(loops.bit_length())]
+    # one discarded call, one loop timed, then the count that loop's time predicts; a loop
+    # too short for the clock to estimate from doubles until a call is long enough
+    calls = [l for _, l in run.log]
+    if ns >= LOOP_ESTIMATE_MIN_SHARE * MIN_VALUE_NS:
+        assert calls == ([1, 1] if loops == 1 else [1, 1, loops])
+    else:
+        assert calls[:3] == [1, 1, 2] and calls[-1] == loops
+        assert all(b > a and b & (b - 1) == 0 for a, b in zip(calls[1:], calls[2:]))
+
+
+@pytest.mark.parametrize("i", range(6))
+def test_calibrate_loops_matches_doubling_under_noise(i):
+    """With noisy values (a slow or fast one-loop call among them) the predicted jumps find
+    a count within a factor of two of pyperf's doubling on the same planted cost, in fewer
+    and shorter calls; every count is a power of two."""
+    rng = np.random.default_rng(1020 + i)
+    ns = float(rng.uniform(1_000.0, 30_000.0))
+
+    def doubling(run):
+        run(1)
+        loops = 1
+        while run(loops)[0] < MIN_VALUE_NS:
+            loops *= 2
+        return loops
+
+    ref = doubling(FakeRun("ref", ns))
+    for j in range(5):
+        slow_one = float(rng.uniform(0.5, 3.0))  # the one-loop call's time off by this factor
+        run = FakeRun("a", ns, rng=np.random.default_rng(1030 + 10 * i + j), noise_sigma=0.05,
+                      slow_first=2, slow_factor=slow_one)
+        loops, notes = calibrate_loops(run, min_value_ns=MIN_VALUE_NS)
+        assert notes == [] and loops & (loops - 1) == 0
+        assert ref // 2 <= loops <= 2 * ref
+        assert len(run.log) <= 2 + ref.bit_length()  # doubling's calls: 1 + ref.bit_length()
+        assert sum(l for _, l in run.log[2:]) <= sum(2**k for k in range(ref.bit_length())) + 2 * ref
+
+
+def test_calibrate_loops_doubles_when_one_loop_is_below_the_clock():
+    """A one-loop call too short to estimate from (a coarse clock reads 0) doubles the loops."""
+    run = FakeRun("a", 0.4)  # int(loops * 0.4) ns: 0 for one loop
+    loops, _ = calibrate_loops(run, min_value_ns=MIN_VALUE_NS)
+    calls = [l for _, l in run.log]
+    assert calls[:4] == [1, 1, 2, 4]
+    assert int(loops * 0.4) >= MIN_VALUE_NS and int(loops // 2 * 0.4) < MIN_VALUE_NS * 1.01
+
+
+def test_calibrate_loops_jumps_again_after_a_slow_first_loop():
+    """A one-loop call three times slow (still cold) predicts too few loops; the call with
+    them, warm, predicts the right count, which is the answer."""
+    ns = 1_000.0  # 100 loops reach MIN_VALUE_NS: the answer is 128
+    run = FakeRun("a", ns, slow_first=2, slow_factor=3.0)  # the one-loop call reads 3,000 ns
+    loops, _ = calibrate_loops(run, min_value_ns=MIN_VALUE_NS)
+    assert [l for _, l in run.log] == [1, 1, 64, 128]  # 100_000 / 3_000 = 34 -> 64, then 100 -> 128
+    assert loops == 128
 
 
 @pytest.mark.parametrize("i", range(4))
@@ -164,14 +217,15 @@ def test_copies_take_the_values_in_turn(i):
     for k, v in enumerate(per_copy):
         assert np.sum(np.isclose(values, v)) == rounds // 3, (k, values, per_copy)
     assert out["a"].median == pytest.approx(per_copy[1])
-    # after the loop calibration (copy 0: one discarded call, then 1, 2, 4, ... loops),
-    # each value is a priming call and a timed call on one copy: the warm-up on copy 0,
-    # then the values on copies 1, 2, 0, 1, ...
+    # after the loop calibration (copy 0: one discarded call, one loop, then the count that
+    # loop predicts, the warm-up), each value is a priming call and a timed call on one
+    # copy: copies 0, 1, 2, 0, 1, ...
     calls = [(n, l) for n, l in log if n.startswith("copy")]
-    calibration = 1 + loops.bit_length()
-    assert calls[:calibration] == [("copy0", 1)] + [("copy0", 2 ** k) for k in range(loops.bit_length())]
+    calibration = 3 if loops > 1 else 2
+    assert calls[:calibration] == [("copy0", 1), ("copy0", 1), ("copy0", loops)][:calibration]
+    assert len(out["a"].warmups_ns) == 1
     pairs = [calls[j:j + 2] for j in range(calibration, len(calls), 2)]
-    assert len(pairs) == rounds + 1
+    assert len(pairs) == rounds
     for v, pair in enumerate(pairs):
         assert pair == [(f"copy{v % 3}", 1), (f"copy{v % 3}", loops)], (v, pair)
 
@@ -199,13 +253,12 @@ def test_a_run_with_its_own_prime_is_primed_by_it(i):
     assert len(out["a"].values_ns) == rounds
     calls_a = [c for n, c in log if n == "a"]
     after_calibration = calls_a[calls_a.index("prime"):]
-    assert after_calibration == ["prime", out["a"].loops] * (rounds + 1)  # the warm-up and each value
-    # copy b0 (warm-up, then values 2 and 4) primes itself; b1 (values 1 and 3) by one loop
+    assert after_calibration == ["prime", out["a"].loops] * rounds  # each value (the warm-up: the calibration's)
+    # copy b0 (values 1 and 3) primes itself; b1 (values 2 and 4) by one loop
     b = [(n, c) for n, c in log if n.startswith("b")]
     b_after = b[[k for k, e in enumerate(b) if e[1] == "prime"][0]:]
     loops = out["b"].loops
-    assert b_after == [("b0", "prime"), ("b0", loops), ("b1", 1), ("b1", loops)] * 2 + [("b0", "prime"),
-                                                                                       ("b0", loops)]
+    assert b_after == [("b0", "prime"), ("b0", loops), ("b1", 1), ("b1", loops)] * 2
 
 
 def test_copies_needs_run_callables():
@@ -389,8 +442,9 @@ def test_should_stop_sees_partial_results():
 def test_interrupt_keeps_partial_data_and_resume_completes():
     log = []
     runs = {n: FakeRun(n, log=log) for n in "abc"}
-    # calibration of NS_PER_LOOP to 100 us takes 9 calls (a discarded one, loops 1..128)
-    runs["b"].fail_at = 9 + 1 + 4  # calibration, warm-up, then the 4th value of b
+    # calibration of NS_PER_LOOP to 100 us takes 3 calls (a discarded one, 1 loop, 128 loops,
+    # the last of them the warm-up)
+    runs["b"].fail_at = 3 + 4  # calibration, then the 4th value of b
     into = {}
     with pytest.raises(MeasurementInterrupted) as info:
         measure(runs, rng=np.random.default_rng(2200), rounds=6, warmups=1,
@@ -429,9 +483,38 @@ def test_progress_counts_every_warmup_and_value():
     measure(runs, rng=np.random.default_rng(2400), rounds=4, warmups=2,
             min_value_ns=MIN_VALUE_NS, progress=lambda d, t, s: calls.append((d, t, s)),
             timer_resolution_ns=RES_NS)
+    # two warm-ups a configuration, the first the calibration's last call (not counted)
     counted = [(d, t) for d, t, _ in calls if t > 0]
-    assert counted == [(k, 12) for k in range(1, 13)]
+    assert counted == [(k, 10) for k in range(1, 11)]
     assert sum(s.startswith("calibrating") for _, _, s in calls) == 2
+    assert sum(s.startswith("warm-up 1/") for _, _, s in calls) == 0
+    assert sum(s.startswith("warm-up 2/") for _, _, s in calls) == 2
+
+
+@pytest.mark.parametrize("i", range(3))
+def test_the_calibrations_last_call_is_the_first_warmup(i):
+    """Each configuration calibrated in the run keeps ``warmups`` warm-ups, the first the
+    calibration's last call (a value of the count found); the pass times only the rest.
+    Resumed configurations, not calibrated again, get every warm-up timed."""
+    rng = np.random.default_rng(2410 + i)
+    log = []
+    runs = {n: FakeRun(n, float(rng.uniform(500.0, 5_000.0)), log=log) for n in "abc"}
+    warmups = 1 + i
+    out = measure(runs, rng=np.random.default_rng(2420 + i), rounds=3, warmups=warmups,
+                  min_value_ns=MIN_VALUE_NS, timer_resolution_ns=RES_NS)
+    for n, m in out.items():
+        assert len(m.warmups_ns) == warmups
+        assert m.warmups_ns[0] == int(m.loops * runs[n].ns_per_loop) / m.loops
+        # calls at the count found: the calibration's last, the other warm-ups, the values
+        assert sum(1 for name, l in log if name == n and l == m.loops) == 1 + (warmups - 1) + 3
+    resumed = {n: Measurement.from_dict(json.loads(json.dumps(m.to_dict()))) for n, m in out.items()}
+    log2 = []
+    runs2 = {n: FakeRun(n, runs[n].ns_per_loop, log=log2) for n in "abc"}
+    out2 = measure(runs2, rng=np.random.default_rng(2430 + i), rounds=4, warmups=warmups,
+                   min_value_ns=MIN_VALUE_NS, into=resumed, timer_resolution_ns=RES_NS)
+    for n, m in out2.items():
+        assert len(m.warmups_ns) == warmups and len(m.values_ns) == 4
+        assert sum(1 for name, _ in log2 if name == n) == warmups + 1
 
 
 # -- input validation and serialisation ----------------------------------------------
