@@ -1312,16 +1312,29 @@ static gc_status fill_occupancy(builder *b)
 {
     gc_grid *g = b->g;
     const uint64_t words = GC_OCC_WORDS(g->n_cells);
-    gc_status st = check_memory(b, words * sizeof(uint64_t), "the cells' occupancy bits");
+    /* The walk's look-ahead reads the bit of the cell one step ahead before it knows that the
+     * step stays in the node (gc_occupied): zero words of one layer of the largest node on
+     * either side keep such a read in the array and make it an empty cell. */
+    int64_t layer = 1;
+    for (int64_t k = 0; k < g->n_nodes; ++k) {
+        const int64_t cells = (int64_t)g->nodes[k].n[0] * (int64_t)g->nodes[k].n[1];
+        layer = cells > layer ? cells : layer;
+    }
+    const uint64_t pad = GC_OCC_WORDS(layer) + 1;
+    gc_status st = check_memory(b, (words + 2 * pad) * sizeof(uint64_t), "the cells' occupancy bits");
     if (st != GC_OK) {
         return st;
     }
     /* every word is written below */
-    g->occ = gc_big_alloc_raw((size_t)words * sizeof(uint64_t), &g->occ_mapped, 0);
-    if (!g->occ) {
+    uint64_t *base = gc_big_alloc_raw((size_t)(words + 2 * pad) * sizeof(uint64_t), &g->occ_mapped, 0);
+    if (!base) {
         gc_set_error(b->err, "out of memory for the occupancy bits of %lld cells", (long long)g->n_cells);
         return GC_ERR_NO_MEMORY;
     }
+    memset(base, 0, (size_t)pad * sizeof(uint64_t));
+    memset(base + pad + words, 0, (size_t)pad * sizeof(uint64_t));
+    g->occ = base + pad;
+    g->occ_pad = (int64_t)pad;
     const gc_cell *cells = g->cells;
     for (uint64_t w = 0; w < words; ++w) {
         const int64_t c0 = (int64_t)(w * 64);

@@ -95,7 +95,9 @@ struct gc_grid {
     int64_t n_nodes;
     gc_cell *cells;
     int64_t n_cells;
-    uint64_t *occ;      /* the cells' occupancy bits (above), GC_OCC_WORDS(n_cells) words */
+    uint64_t *occ;      /* the cells' occupancy bits (above), GC_OCC_WORDS(n_cells) words, with
+                         * occ_pad zero words before and after them */
+    int64_t occ_pad;
     size_t ref_tris_mapped, cells_mapped, occ_mapped; /* bytes mapped by gc_big_alloc, 0 if malloc'd */
     uint32_t *refs;     /* the mesh face of each reference (build only; freed after) */
     int64_t n_refs;
@@ -107,10 +109,13 @@ struct gc_grid {
 /* Words of the occupancy bits of n cells. */
 #define GC_OCC_WORDS(n) (((uint64_t)(n) + 63) / 64)
 
-/* Whether cell idx (an index into the grid's cells) holds references or a subgrid. */
+/* Whether cell idx (an index into the grid's cells) holds references or a subgrid.  idx may
+ * lie up to one node's layer (nx * ny cells, the largest of any node) before the first cell or
+ * past the last: the bits there are occ_pad zero words, so such a cell reads as empty.  The
+ * shift of a negative idx is arithmetic (gcc and clang define it so): word floor(idx / 64). */
 GC_INLINE uint32_t gc_occupied(const uint64_t *occ, int64_t idx)
 {
-    return (uint32_t)(occ[(uint64_t)idx >> 6] >> ((uint64_t)idx & 63)) & 1u;
+    return (uint32_t)(occ[idx >> 6] >> ((uint64_t)idx & 63)) & 1u;
 }
 
 /* The one place a cell's index is computed. */

@@ -154,7 +154,7 @@ void gc_grid_free(gc_grid *grid)
     gc_big_free(grid->ref_tris, grid->ref_tris_mapped);
     free(grid->nodes);
     gc_big_free(grid->cells, grid->cells_mapped);
-    gc_big_free(grid->occ, grid->occ_mapped);
+    gc_big_free(grid->occ ? grid->occ - grid->occ_pad : NULL, grid->occ_mapped);
     free(grid->refs);
     free(grid);
 }
@@ -180,7 +180,8 @@ void gc_grid_get_info(const gc_grid *g, gc_grid_info *info)
     info->memory_bytes = (int64_t)(sizeof(gc_grid) + (size_t)GC_PACK_BYTES(g->n_refs) +
                                    (size_t)g->n_nodes * sizeof(gc_node) +
                                    (size_t)g->n_cells * sizeof(gc_cell) +
-                                   (size_t)GC_OCC_WORDS(g->n_cells) * sizeof(uint64_t));
+                                   (size_t)(GC_OCC_WORDS(g->n_cells) + 2 * (uint64_t)g->occ_pad) *
+                                       sizeof(uint64_t));
     info->levels = (int32_t)deepest + 1;
     for (int i = 0; i < 3; ++i) {
         info->resolution[i] = g->nodes[0].n[i];

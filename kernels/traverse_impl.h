@@ -164,8 +164,6 @@ GC_TW_ATTR static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, con
     const __m128d ones = _mm_castsi128_pd(_mm_set1_epi32(-1));
 #endif
     int64_t idx = (int64_t)gc_cell_index(nd, c[0], c[1], c[2]);
-    const int64_t first = (int64_t)nd->first_cell;
-    const int64_t end = first + axis_stride[2] * (int64_t)nd->n[2];
     const gc_cell *cells = g->cells;
     const uint64_t *occ = g->occ;
     const gc_pack *ref_tris = g->ref_tris;
@@ -219,9 +217,12 @@ GC_TW_ATTR static void GC_TW_NAME(walk)(const gc_grid *g, const gc_node *nd, con
          * loading while this cell is tested: a cell's triangles lie at a place in memory
          * nothing else predicts, and waiting for them made an occupied cell cost several
          * empty ones.  The walk goes on only into a cell of this node (the cells left on
-         * each axis end it), so next is the cell of the next step whenever there is one. */
+         * each axis end it), so next is the cell of the next step whenever there is one;
+         * where there is none, next is one step outside the node, another node's cell or
+         * one of the zero bits around the array (gc_occupied), and what is read there is
+         * never used. */
         nc.count = 0;
-        if (next >= first && next < end && gc_occupied(occ, next)) {
+        if (gc_occupied(occ, next)) {
             nc = cells[next];
             if (nc.count != GC_CELL_SUBGRID) {
                 GC_PREFETCH(ref_tris + nc.begin / GC_LANES);

@@ -158,7 +158,9 @@ static void random_rays(int64_t n, const double lo[3], const double hi[3], uint6
 }
 
 /* The occupancy bits (gc_internal.h) say which records hold references or a subgrid, cell
- * for cell, and the last word's bits past the cells are clear. */
+ * for cell, and the last word's bits past the cells are clear; so are the bits of one layer of
+ * the largest node (nx * ny cells) before the first cell and after the last, which the walk's
+ * look-ahead may read. */
 static void check_occupancy(const gc_grid *g, const char *label)
 {
     int64_t bad = 0, occupied = 0;
@@ -172,6 +174,17 @@ static void check_occupancy(const gc_grid *g, const char *label)
     const uint64_t past = spare ? g->occ[words - 1] >> (64 - spare) : 0;
     CHECK(bad == 0 && past == 0, "%s: %lld of %lld occupancy bits wrong (%lld occupied), bits past the cells %llx",
           label, (long long)bad, (long long)g->n_cells, (long long)occupied, (unsigned long long)past);
+    int64_t layer = 1, outside = 0;
+    for (int64_t k = 0; k < g->n_nodes; ++k) {
+        const int64_t cells = (int64_t)g->nodes[k].n[0] * (int64_t)g->nodes[k].n[1];
+        layer = cells > layer ? cells : layer;
+    }
+    for (int64_t c = 1; c <= layer; ++c) {
+        outside += gc_occupied(g->occ, -c) + gc_occupied(g->occ, g->n_cells - 1 + c);
+    }
+    CHECK(outside == 0 && g->occ_pad * 64 >= layer,
+          "%s: %lld occupancy bits set within a layer (%lld cells) outside the cells, pad %lld words", label,
+          (long long)outside, (long long)layer, (long long)g->occ_pad);
 }
 
 /* Compare one grid with brute force on n rays; returns the number of disagreements. */
