@@ -670,7 +670,8 @@ def measure(
     min_value_ns : minimum duration of one value for loop calibration, ns.
     max_loops : cap on the calibrated loop count.
     progress : optional ``progress(done, total, label)`` called after each
-        warm-up or value; ``total`` counts warm-ups plus values. During loop
+        warm-up or value; ``total`` counts the warm-ups timed (not the loop
+        calibration's last calls, kept as warm-ups) plus values. During loop
         calibration it is called as ``progress(0, 0, "calibrating <name>")``
         (total 0: not yet known).
     deadline : ``clock()`` value (default ``time.monotonic()``) after which the
