@@ -23,15 +23,12 @@
 /* A ray as each of its walks reads it: the prepared ray and, for the packed sign stage,
  * its broadcast form (gc_ray4 or gc_ray2), made once a ray by the trace below, not once a
  * node entered; a nested grid's ray enters several. */
-#if GC_TW_SIMD == 4
-#define GC_TW_RAYV gc_ray4
-#elif GC_TW_SIMD == 2
-#define GC_TW_RAYV gc_ray2
-#endif
 typedef struct {
     gc_ray ray;
-#if GC_TW_SIMD
-    GC_TW_RAYV v;
+#if GC_TW_SIMD == 4
+    gc_ray4 v;
+#elif GC_TW_SIMD == 2
+    gc_ray2 v;
 #endif
 } GC_TW_NAME(wray);
 
@@ -385,7 +382,3 @@ GC_TW_ATTR static void GC_TW_NAME(trace)(const gc_grid *g, GC_TW_NAME(wray) *w, 
     GC_TW_NAME(walk)(g, top, w, t0, t1, hit, mail);
 #endif
 }
-
-#if GC_TW_SIMD
-#undef GC_TW_RAYV
-#endif
