@@ -664,9 +664,9 @@ def measure(
     rounds : values wanted per configuration (>= 1); one round times each
         configuration still short of ``rounds`` values once.
     warmups : discarded values per configuration before the first round (>= 0).  A
-        configuration calibrated here has its calibration's last call as its first
-        warm-up when that call was made with the count found (a discarded value of that
-        count, warm from the calls before it), so the warm-up pass skips it once.
+        configuration calibrated here has its calibration's last call, made with the count
+        found, as its first warm-up (a discarded value of that count, warm from the calls
+        before it), so the warm-up pass skips it once.
     min_value_ns : minimum duration of one value for loop calibration, ns.
     max_loops : cap on the calibrated loop count.
     progress : optional ``progress(done, total, label)`` called after each
@@ -732,7 +732,7 @@ def measure(
     names = list(configs)
     try:
         # 1. loop calibration, for configurations not resumed
-        last_call = {}  # name -> ns a loop of the calibration's last call, made with the count found
+        last_call = {}  # name -> ns a loop of the calibration's last call (made with the count found)
         for name in names:
             if name in results:
                 continue
@@ -745,8 +745,7 @@ def measure(
             if loops is None:
                 break
             results[name] = Measurement(loops=loops, notes=notes)
-            if calls and calls[-1][0] == loops:
-                last_call[name] = calls[-1][1] / loops
+            last_call[name] = calls[-1][1] / loops  # calibrate_loops ends on a call with its count
         ready = [n for n in names if n in results]
         for name in ready:
             m = results[name]
